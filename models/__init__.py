@@ -1,0 +1,32 @@
+"""Physics of the beam-column: parameters, FE model, modal reduction and the simulation plant.
+
+Knows nothing about time or I/O beyond the sampled plant of ``models.plant``.
+"""
+
+from models.analysis import (
+    buckling_mode,
+    critical_load,
+    eigenfrequencies,
+    fe_frequency_response,
+    state_space,
+)
+from models.fe import FEModel, build_model
+from models.modal import ModalModel, reduce
+from models.params import ModelParameters, load_parameters, parameters_from_dict
+from models.schema import ConfigError
+
+__all__ = [
+    "ConfigError",
+    "FEModel",
+    "ModalModel",
+    "ModelParameters",
+    "buckling_mode",
+    "build_model",
+    "critical_load",
+    "eigenfrequencies",
+    "fe_frequency_response",
+    "load_parameters",
+    "parameters_from_dict",
+    "reduce",
+    "state_space",
+]

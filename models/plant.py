@@ -1,0 +1,351 @@
+"""The beam-column as a sampled system, stepped one sample at a time, for simulation.
+
+Reduction: a Rayleigh-Ritz basis per bending plane made of
+- the first ``modes_per_plane`` bending modes (so control and observation spillover from
+  modes the controller does not model are present),
+- the static deflection shapes Ke^-1 f of every force the plant applies (actuator forces at
+  nodes 1 and N, eccentric-load end moments): the actuators push on the extension tips
+  between two stiff springs, and the beam's strain response to them is a near-cancellation
+  over many modes that a truncated modal basis gets wrong, even in sign,
+- the first buckling mode, so that the plant's critical load is the FE model's.
+The basis is mass-orthonormalised and diagonalised at ``basis_reference_load``.
+
+Axial load: the plant follows a load programme Fx(t) (the rig's quasi-static ramp). The
+system matrix depends on Fx; it is discretised exactly (zero-order hold, matrix exponential)
+at loads on a grid of spacing 2 x ``load_tolerance``, so the load used in the dynamics
+never differs from the applied one by more than ``load_tolerance``. A new discretisation is
+computed only when the load crosses into another grid cell.
+
+Imperfection: a stress-free initial bow r0 (shape of the first buckling mode, largest
+lateral deviation ``bow.amplitude`` in direction ``bow.angle_deg`` from +y towards +z) acts
+as the load Fx Kg r0; an eccentric load application at offset ``eccentricity.amplitude``
+acts as end moments Fx e at the spring elements. The state is the elastic deflection r
+(what the strain gauges see); the total shape is r + r0.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import scipy.linalg as sla
+
+from models.analysis import buckling_mode
+from models.fe import (
+    PHI_Y,
+    PHI_Z,
+    PLANE_DOFS,
+    FEModel,
+    Plane,
+    dof,
+    plane_eigen,
+    plane_indices,
+)
+from models.schema import (
+    integer,
+    merge,
+    nonnegative,
+    number,
+    positive,
+    read_yaml,
+    validate,
+)
+
+PLANT_DEFAULTS: dict[str, Any] = {
+    "sample_rate": 2000.0,
+    "modes_per_plane": 6,
+    "basis_reference_load": 0.0,
+    "load_tolerance": 0.5,
+    "load": {"start": 260.0, "end": 4000.0, "rate": 50.0, "hold": 0.0},
+    "bow": {"amplitude": 0.0, "angle_deg": 0.0},
+    "eccentricity": {"amplitude": 0.0, "angle_deg": 0.0},
+    "noise": {"strain": 0.0, "load": 0.0, "seed": 0},
+}
+
+_SCHEMA = {
+    "sample_rate": positive("Hz"),
+    "modes_per_plane": integer(low=2, high=40),
+    "basis_reference_load": nonnegative("N"),
+    "load_tolerance": positive("N"),
+    "load": {
+        "start": nonnegative("N"),
+        "end": nonnegative("N"),
+        "rate": positive("N/s"),
+        "hold": nonnegative("s"),
+    },
+    "bow": {"amplitude": nonnegative("m"), "angle_deg": number("deg")},
+    "eccentricity": {"amplitude": nonnegative("m"), "angle_deg": number("deg")},
+    "noise": {"strain": nonnegative("strain, RMS"), "load": nonnegative("N, RMS"),
+              "seed": integer(low=0)},
+}
+
+_CACHE_SIZE = 8
+
+
+@dataclass(frozen=True)
+class LoadRamp:
+    """The rig's load programme: ``start`` for ``hold`` seconds, then a ramp at ``rate`` to
+    ``end``, then ``end``."""
+
+    start: float
+    end: float
+    rate: float
+    hold: float = 0.0
+
+    def load_at(self, time_s: float) -> float:
+        """Axial load in N at ``time_s``."""
+        if time_s <= self.hold:
+            return self.start
+        travel = self.rate * (time_s - self.hold)
+        if self.end >= self.start:
+            return min(self.start + travel, self.end)
+        return max(self.start - travel, self.end)
+
+    def duration(self) -> float:
+        """Time in s until the end load is reached."""
+        return self.hold + abs(self.end - self.start) / self.rate
+
+
+@dataclass(frozen=True)
+class Offset:
+    """A lateral offset: magnitude in m and direction in degrees from +y towards +z."""
+
+    amplitude: float
+    angle_deg: float
+
+    def components(self) -> tuple[float, float]:
+        a = math.radians(self.angle_deg)
+        return self.amplitude * math.cos(a), self.amplitude * math.sin(a)
+
+
+@dataclass(frozen=True)
+class Noise:
+    strain: float
+    load: float
+    seed: int
+
+
+@dataclass(frozen=True)
+class PlantConfig:
+    """Validated settings of the simulated plant (see the module docstring)."""
+
+    sample_rate: float
+    modes_per_plane: int
+    basis_reference_load: float
+    load_tolerance: float
+    load: LoadRamp
+    bow: Offset
+    eccentricity: Offset
+    noise: Noise
+
+    @property
+    def sample_period(self) -> float:
+        return 1.0 / self.sample_rate
+
+
+def plant_config(overrides: dict[str, Any] | None = None, source: str = "") -> PlantConfig:
+    """Validate ``overrides`` over PLANT_DEFAULTS (key by key) into a PlantConfig."""
+    v = validate(merge(PLANT_DEFAULTS, overrides or {}), _SCHEMA, source)
+    return PlantConfig(
+        sample_rate=v["sample_rate"], modes_per_plane=v["modes_per_plane"],
+        basis_reference_load=v["basis_reference_load"], load_tolerance=v["load_tolerance"],
+        load=LoadRamp(**v["load"]), bow=Offset(**v["bow"]),
+        eccentricity=Offset(**v["eccentricity"]), noise=Noise(**v["noise"]))
+
+
+def load_plant_config(path: str | Path) -> PlantConfig:
+    """PlantConfig from a YAML file holding the plant keys at its top level."""
+    return plant_config(read_yaml(path), source=str(path))
+
+
+def eccentricity_moments(model: FEModel, e_y: float, e_z: float) -> np.ndarray:
+    """Nodal moments per newton of axial load applied at offset (e_y, e_z) at both spring
+    elements: r x F with F = +Fx ex at support A and -Fx ex at support B."""
+    f = np.zeros(model.n_dof)
+    a, b = 1, model.n_nodes - 2
+    f[dof(a, PHI_Y)], f[dof(a, PHI_Z)] = e_z, -e_y
+    f[dof(b, PHI_Y)], f[dof(b, PHI_Z)] = -e_z, e_y
+    return f
+
+
+def ritz_basis(model: FEModel, plane: Plane, modes: int, reference_load: float,
+               extra: np.ndarray) -> np.ndarray:
+    """Mass-orthonormal Ritz basis of one plane, diagonal in Ke - F_ref Kg; columns sorted by
+    frequency. ``extra`` holds load vectors whose static shapes join the modes."""
+    idx = plane_indices(model.n_nodes, plane)
+    k_ref = model.load_stiffness(reference_load)
+    _, vec = plane_eigen(k_ref, model.mass, plane, modes)
+    _, buckled = buckling_mode(model, plane)
+    loads = extra[idx][:, np.abs(extra[idx]).max(axis=0) > 0]
+    statics = np.zeros((model.n_dof, loads.shape[1]))
+    statics[idx] = sla.solve(model.elastic_stiffness[np.ix_(idx, idx)], loads, assume_a="pos")
+    z = np.column_stack([vec, buckled, statics])[idx]
+    m = model.mass[np.ix_(idx, idx)]
+    z = z / np.sqrt(np.einsum("ij,ik,kj->j", z, m, z))  # unit mass norm: comparable columns
+    # drop directions already spanned: eigen-decompose the Gram matrix in the mass metric
+    gram_val, gram_vec = np.linalg.eigh(z.T @ m @ z)
+    keep = gram_val > 1e-10 * gram_val.max()
+    z = z @ (gram_vec[:, keep] / np.sqrt(gram_val[keep]))
+    lam, y = np.linalg.eigh(z.T @ k_ref[np.ix_(idx, idx)] @ z)
+    basis = np.zeros((model.n_dof, y.shape[1]))
+    basis[idx] = z @ y[:, np.argsort(lam)]
+    return basis
+
+
+class Plant:
+    """The beam-column sampled at ``config.sample_rate``.
+
+    Each sample: ``measure()`` gives the strains and the load-cell reading of the current
+    state; ``step(forces_n)`` applies the four actuator forces (Fay,A, Faz,A, Fay,B, Faz,B),
+    held constant over the sample, and advances one sample along the load programme.
+    """
+
+    def __init__(self, model: FEModel, config: PlantConfig) -> None:
+        self.model = model
+        self.config = config
+        self.sample_period = config.sample_period
+        e_y, e_z = config.eccentricity.components()
+        ecc = eccentricity_moments(model, e_y, e_z)
+        bow_y, bow_z = config.bow.components()
+        self.critical_load, mode_y = buckling_mode(model, "y")
+        _, mode_z = buckling_mode(model, "z")
+        self.bow = bow_y * mode_y + bow_z * mode_z  # r0, stress free
+
+        # static shapes of unit actuator forces and unit-offset end moments, per plane
+        extra = np.column_stack([model.input_matrix,
+                                 eccentricity_moments(model, 1.0, 0.0),
+                                 eccentricity_moments(model, 0.0, 1.0)])
+        basis = np.column_stack([
+            ritz_basis(model, plane, config.modes_per_plane, config.basis_reference_load, extra)
+            for plane in ("y", "z")])
+        self.basis = basis
+        n = basis.shape[1]
+        self.n_coordinates = n
+        self._k_elastic = basis.T @ model.elastic_stiffness @ basis
+        self._k_geometric = basis.T @ model.geometric_stiffness @ basis
+        self._damping = basis.T @ model.damping @ basis
+        # generalised forces: 4 actuator forces, and per newton of axial load the bow and
+        # eccentricity loads
+        load_shape = model.geometric_stiffness @ self.bow + ecc
+        self._input = basis.T @ np.column_stack([model.input_matrix, load_shape])
+        self._strain = model.output_matrix @ basis
+        nodes = model.beam_nodes
+        self._lateral = np.stack([basis[[dof(k, PLANE_DOFS[p][0]) for k in nodes]]
+                                  for p in ("y", "z")])  # [2 x n_beam x n]
+
+        self._state = np.zeros(2 * n)
+        self._next = np.zeros(2 * n)
+        self._inputs = np.zeros(5)
+        self._cache: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self._bin = None
+        self._ad = self._bd = None
+        self._strain_out = np.zeros(4)
+        self._rng = np.random.default_rng(config.noise.seed)
+        self._noise_block = np.zeros((0, 5))
+        self._noise_index = 0
+        self.discretisations = 0
+        self.reset()
+
+    # -- load-dependent discretisation -------------------------------------------------
+    def continuous(self, axial_load: float) -> tuple[np.ndarray, np.ndarray]:
+        """Continuous-time A(Fx) [2n x 2n] and B [2n x 5] (inputs: 4 forces, Fx)."""
+        n = self.n_coordinates
+        a = np.zeros((2 * n, 2 * n))
+        a[:n, n:] = np.eye(n)
+        a[n:, :n] = -(self._k_elastic - axial_load * self._k_geometric)
+        a[n:, n:] = -self._damping
+        b = np.vstack([np.zeros((n, 5)), self._input])
+        return a, b
+
+    def discretise(self, axial_load: float) -> tuple[np.ndarray, np.ndarray]:
+        """Exact zero-order-hold discretisation at ``axial_load``."""
+        a, b = self.continuous(axial_load)
+        ns, ni = a.shape[0], b.shape[1]
+        aug = np.zeros((ns + ni, ns + ni))
+        aug[:ns, :ns], aug[:ns, ns:] = a, b
+        phi = sla.expm(aug * self.sample_period)
+        self.discretisations += 1
+        return phi[:ns, :ns].copy(), phi[:ns, ns:].copy()
+
+    def _use_load(self, axial_load: float) -> None:
+        cell = 2.0 * self.config.load_tolerance
+        index = round(axial_load / cell)
+        if index == self._bin:
+            return
+        entry = self._cache.get(index)
+        if entry is None:
+            entry = self.discretise(index * cell)
+            self._cache[index] = entry
+            if len(self._cache) > _CACHE_SIZE:
+                self._cache.popitem(last=False)
+        else:
+            self._cache.move_to_end(index)
+        self._bin = index
+        self._ad, self._bd = entry
+
+    # -- simulation ------------------------------------------------------------------------
+    def reset(self, time_s: float = 0.0) -> None:
+        """Place the beam at rest in static equilibrium under the programme's load at
+        ``time_s`` with no actuator force."""
+        self.time = time_s
+        self.axial_load = self.config.load.load_at(time_s)
+        n = self.n_coordinates
+        k = self._k_elastic - self.axial_load * self._k_geometric
+        self._state[:n] = np.linalg.solve(k, self._input[:, 4] * self.axial_load)
+        self._state[n:] = 0.0
+        self._use_load(self.axial_load)
+
+    def step(self, forces_n: np.ndarray) -> None:
+        """Apply the actuator forces (N) for one sample period and advance."""
+        self._inputs[:4] = forces_n
+        self._inputs[4] = self.axial_load
+        np.dot(self._ad, self._state, out=self._next)
+        self._next += self._bd @ self._inputs
+        self._state, self._next = self._next, self._state
+        self.time += self.sample_period
+        self.axial_load = self.config.load.load_at(self.time)
+        self._use_load(self.axial_load)
+
+    def _noise(self) -> np.ndarray:
+        if self._noise_index >= len(self._noise_block):
+            self._noise_block = self._rng.standard_normal((4096, 5))
+            self._noise_block[:, :4] *= self.config.noise.strain
+            self._noise_block[:, 4] *= self.config.noise.load
+            self._noise_index = 0
+        row = self._noise_block[self._noise_index]
+        self._noise_index += 1
+        return row
+
+    def measure(self) -> tuple[np.ndarray, float]:
+        """(strains [eps_y1, eps_z1, eps_y2, eps_z2], load-cell reading in N) of the current
+        state, noise included. The strain array is reused by the next call."""
+        noise = self._noise()
+        np.dot(self._strain, self._state[:self.n_coordinates], out=self._strain_out)
+        self._strain_out += noise[:4]
+        return self._strain_out, self.axial_load + float(noise[4])
+
+    # -- observation for experiments and tests ------------------------------------------------
+    @property
+    def coordinates(self) -> np.ndarray:
+        """Generalised coordinates of the elastic deflection (copy)."""
+        return self._state[:self.n_coordinates].copy()
+
+    def elastic_deflection(self) -> np.ndarray:
+        """Elastic lateral deflection (v, w) at the beam nodes in m, [n_beam x 2]."""
+        return (self._lateral @ self._state[:self.n_coordinates]).T
+
+    def deflection(self) -> tuple[float, float]:
+        """Largest elastic lateral deflection magnitude along the beam (m) and its direction
+        (degrees from +y towards +z, in [0, 360))."""
+        vw = self.elastic_deflection()
+        mag = np.hypot(vw[:, 0], vw[:, 1])
+        k = int(np.argmax(mag))
+        return float(mag[k]), math.degrees(math.atan2(vw[k, 1], vw[k, 0])) % 360.0
+
+    def displacement(self) -> np.ndarray:
+        """Elastic FE displacement vector r (4N) of the current state."""
+        return self.basis @ self._state[:self.n_coordinates]

@@ -1,0 +1,242 @@
+"""Validation of nested YAML/dict configuration against a declared schema.
+
+Every configuration file of the project (model parameters, plant scenario, controller and
+HAL settings) is checked here on load, so that a wrong value is refused with one kind of
+message: the dotted key, the value found and what was expected.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+Validator = Callable[[Any], Any]
+
+
+class _Loader(yaml.SafeLoader):
+    """Safe YAML loader that reads YAML 1.2 floats: ``75.8e9`` and ``1e-3`` are numbers, not
+    the strings PyYAML's YAML 1.1 rules would make of them."""
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+                    |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+                    |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+                    |[-+]?\.(?:inf|Inf|INF)
+                    |\.(?:nan|NaN|NAN))$""", re.X),
+    list("-+0123456789."),
+)
+
+
+class ConfigError(ValueError):
+    """A configuration value (or file) was refused.
+
+    Attributes
+    ----------
+    key : str
+        Dotted path of the offending key (``"beam.radius"``), empty for file-level errors.
+    value : Any
+        The value that was found.
+    expected : str
+        What would have been accepted.
+    """
+
+    def __init__(self, key: str, value: Any, expected: str, source: str = "") -> None:
+        self.key = key
+        self.value = value
+        self.expected = expected
+        self.source = source
+        where = f"{source}: " if source else ""
+        what = f"{key} = {value!r}" if key else repr(value)
+        super().__init__(f"{where}{what}: expected {expected}")
+
+
+class _Invalid(Exception):
+    """Raised by a validator with the expectation text; turned into ConfigError by the caller."""
+
+    def __init__(self, expected: str) -> None:
+        super().__init__(expected)
+        self.expected = expected
+
+
+def _as_float(value: Any, expected: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise _Invalid(expected)
+    number = float(value)
+    if not math.isfinite(number):
+        raise _Invalid(expected)
+    return number
+
+
+def number(
+    unit: str = "",
+    *,
+    low: float | None = None,
+    high: float | None = None,
+    low_open: bool = False,
+    high_open: bool = False,
+) -> Validator:
+    """A finite real number, optionally bounded; ``low_open`` excludes the bound itself."""
+    parts = ["a finite number"]
+    if low is not None:
+        parts.append(f"{'>' if low_open else '>='} {low:g}")
+    if high is not None:
+        parts.append(f"{'<' if high_open else '<='} {high:g}")
+    expected = " ".join(parts[:1]) + (" " + " and ".join(parts[1:]) if parts[1:] else "")
+    if unit:
+        expected += f" (in {unit})"
+
+    def check(value: Any) -> float:
+        x = _as_float(value, expected)
+        if low is not None and (x < low or (low_open and x == low)):
+            raise _Invalid(expected)
+        if high is not None and (x > high or (high_open and x == high)):
+            raise _Invalid(expected)
+        return x
+
+    return check
+
+
+def positive(unit: str = "") -> Validator:
+    """A finite number > 0."""
+    return number(unit, low=0.0, low_open=True)
+
+
+def nonnegative(unit: str = "") -> Validator:
+    """A finite number >= 0."""
+    return number(unit, low=0.0)
+
+
+def integer(*, low: int | None = None, high: int | None = None) -> Validator:
+    """An integer (not a bool, not a float with a fraction) within bounds."""
+    expected = "an integer"
+    if low is not None:
+        expected += f" >= {low}"
+    if high is not None:
+        expected += f" and <= {high}" if low is not None else f" <= {high}"
+
+    def check(value: Any) -> int:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise _Invalid(expected)
+        if isinstance(value, float) and not value.is_integer():
+            raise _Invalid(expected)
+        n = int(value)
+        if (low is not None and n < low) or (high is not None and n > high):
+            raise _Invalid(expected)
+        return n
+
+    return check
+
+
+def number_list(element: Validator, length: int, description: str) -> Validator:
+    """A list of exactly ``length`` numbers, each passing ``element``."""
+    expected = f"a list of {length} {description}"
+
+    def check(value: Any) -> tuple[float, ...]:
+        if not isinstance(value, (list, tuple)) or len(value) != length:
+            raise _Invalid(expected)
+        try:
+            return tuple(element(v) for v in value)
+        except _Invalid as exc:
+            raise _Invalid(f"{expected}, each {exc.expected}") from None
+
+    return check
+
+
+def choice(*options: str) -> Validator:
+    """One of a fixed set of strings."""
+    expected = "one of " + ", ".join(repr(o) for o in options)
+
+    def check(value: Any) -> str:
+        if not isinstance(value, str) or value not in options:
+            raise _Invalid(expected)
+        return value
+
+    return check
+
+
+def boolean() -> Validator:
+    """``true`` or ``false``."""
+
+    def check(value: Any) -> bool:
+        if not isinstance(value, bool):
+            raise _Invalid("true or false")
+        return value
+
+    return check
+
+
+def text() -> Validator:
+    """A non-empty string."""
+
+    def check(value: Any) -> str:
+        if not isinstance(value, str) or not value:
+            raise _Invalid("a non-empty string")
+        return value
+
+    return check
+
+
+Schema = Mapping[str, "Validator | Schema"]
+
+
+def merge(defaults: Mapping[str, Any], overrides: Mapping[str, Any]) -> dict[str, Any]:
+    """Return ``defaults`` with ``overrides`` applied key by key (nested mappings merged)."""
+    merged: dict[str, Any] = dict(defaults)
+    for key, value in overrides.items():
+        if isinstance(value, Mapping) and isinstance(merged.get(key), Mapping):
+            merged[key] = merge(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
+
+
+def validate(data: Any, schema: Schema, source: str = "", prefix: str = "") -> dict[str, Any]:
+    """Check ``data`` against ``schema`` and return the converted values.
+
+    Unknown keys, missing keys, wrong types and out-of-range values raise ConfigError naming
+    the dotted key. ``data`` must contain every key of the schema (merge with defaults first).
+    """
+    if not isinstance(data, Mapping):
+        raise ConfigError(prefix.rstrip("."), data, "a mapping of keys to values", source)
+    unknown = sorted(set(data) - set(schema))
+    if unknown:
+        key = prefix + str(unknown[0])
+        raise ConfigError(key, data[unknown[0]], f"one of the known keys {sorted(schema)}", source)
+    out: dict[str, Any] = {}
+    for key, rule in schema.items():
+        dotted = prefix + key
+        if key not in data:
+            raise ConfigError(dotted, None, "a value (the key is missing)", source)
+        if isinstance(rule, Mapping):
+            out[key] = validate(data[key], rule, source, dotted + ".")
+            continue
+        try:
+            out[key] = rule(data[key])
+        except _Invalid as exc:
+            raise ConfigError(dotted, data[key], exc.expected, source) from None
+    return out
+
+
+def read_yaml(path: str | Path) -> dict[str, Any]:
+    """Read a YAML mapping from ``path``; a missing, unreadable or non-mapping file is refused."""
+    p = Path(path)
+    try:
+        text_ = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError("", str(p), f"a readable YAML file ({exc.strerror or exc})") from None
+    try:
+        data = yaml.load(text_, Loader=_Loader)  # noqa: S506 (safe loader subclass)
+    except yaml.YAMLError as exc:
+        raise ConfigError("", str(p), f"valid YAML ({exc})") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError("", str(p), f"a YAML mapping at the top level, found {type(data).__name__}")
+    return data

@@ -1,0 +1,1 @@
+"""The ``beamctl`` command line over models/, gains/, rt/ and hal/."""

@@ -1,0 +1,33 @@
+"""Entry point of the ``beamctl`` command line."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from models.schema import ConfigError
+from tools import model_cmd
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="beamctl",
+        description="Active buckling control of a beam-column with piezo-elastic supports.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    model_cmd.add_parser(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run ``beamctl`` with ``argv`` (default: the process arguments); return the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.run(args) or 0)
+    except ConfigError as exc:
+        print(f"beamctl {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,91 @@
+"""``beamctl model``: critical load, eigenfrequencies versus load, figures 5b and 6."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from models import build_model, critical_load, eigenfrequencies, load_parameters, reduce
+from models.fe import FEModel
+from models.modal import ModalModel
+
+TABLE_LOADS_N = (0, 500, 1000, 1500, 2000, 2500, 3000)
+FIGURE6_LOAD_N = 2000.0
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("model", help="FE model: critical load, eigenfrequencies, figures 5b and 6",
+                       description="Build the FE model of the beam-column and report its "
+                                   "critical buckling load and eigenfrequencies versus load.")
+    p.add_argument("--config", metavar="F", help="model parameters (YAML) over the paper's Table 1")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of tables")
+    p.add_argument("--plot", metavar="DIR", help="write figure 5b and figure 6 as PNG into DIR")
+    p.set_defaults(run=run)
+
+
+def summary(model: FEModel, reduced: ModalModel) -> dict:
+    """The numbers ``beamctl model`` reports, as a JSON-ready dict."""
+    full = {str(f): eigenfrequencies(model, f, 3).tolist() for f in TABLE_LOADS_N}
+    red = {str(f): reduced.eigenfrequencies(f).tolist() for f in TABLE_LOADS_N}
+    error = {k: [r / f - 1.0 for r, f in zip(red[k], full[k][:2], strict=True)] for k in full}
+    return {
+        "critical_load_N": critical_load(model),
+        "eigenfrequencies_Hz": full,
+        "nodes": model.n_nodes,
+        "rayleigh": {"alpha_per_s": model.rayleigh_alpha, "beta_s": model.rayleigh_beta,
+                     "identification_load_N": model.params.damping.identification_load},
+        "reduced_model": {
+            "reference_load_N": reduced.reference_load,
+            "critical_load_N": reduced.critical_load(),
+            "condition_number_C0_Phi": reduced.condition_number,
+            "eigenfrequencies_Hz": red,
+            "relative_error": error,
+        },
+    }
+
+
+def print_table(s: dict, source: str) -> None:
+    red = s["reduced_model"]
+    print(f"model: {source}, N = {s['nodes']} nodes, {4 * s['nodes']} DOF")
+    print(f"critical buckling load Fx,cr = {s['critical_load_N']:.1f} N (eq. 12)")
+    r = s["rayleigh"]
+    print(f"Rayleigh damping: alpha = {r['alpha_per_s']:.4g} 1/s, beta = {r['beta_s']:.4g} s "
+          f"(fitted at {r['identification_load_N']:g} N)")
+    print(f"reduced model: modes at {red['reference_load_N']:g} N, cond(C0 Phi) = "
+          f"{red['condition_number_C0_Phi']:.3g}, critical load {red['critical_load_N']:.1f} N")
+    print()
+    print(f"{'load N':>7} | {'f1 Hz':>8} {'f2 Hz':>8} {'f3 Hz':>8} | {'reduced f1':>10} {'f2':>8} "
+          f"| {'err f1 %':>8} {'err f2 %':>8}")
+    for load, f in s["eigenfrequencies_Hz"].items():
+        fr, err = red["eigenfrequencies_Hz"][load], red["relative_error"][load]
+        print(f"{load:>7} | {f[0]:8.2f} {f[1]:8.2f} {f[2]:8.2f} | {fr[0]:10.2f} {fr[1]:8.2f} "
+              f"| {100 * err[0]:8.3f} {100 * err[1]:8.3f}")
+
+
+def run(args: argparse.Namespace) -> int:
+    params = load_parameters(args.config)
+    model = build_model(params)
+    reduced = reduce(model)
+    s = summary(model, reduced)
+    if args.json:
+        print(json.dumps(s, indent=2))
+    else:
+        print_table(s, args.config or "paper defaults (models/paper.yaml)")
+    if args.plot:
+        from tools import plots
+
+        out = Path(args.plot)
+        written = [
+            plots.eigenfrequencies_vs_load(model, reduced, out / "fig5b_eigenfrequencies.png"),
+            plots.frequency_response_full_vs_reduced(
+                model, reduced, FIGURE6_LOAD_N, np.linspace(0.0, 1200.0, 2401),
+                out / "fig6_frequency_response.png"),
+        ]
+        if not args.json:
+            print()
+            for path in written:
+                print(f"wrote {path}")
+    return 0

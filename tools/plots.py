@@ -1,0 +1,82 @@
+"""Figures (matplotlib, Agg backend: no screen needed)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from models import critical_load, eigenfrequencies, fe_frequency_response
+from models.fe import FEModel
+from models.modal import ModalModel
+from models.schema import ConfigError
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: Path) -> Path:
+    path = Path(path)
+    if path.parent.exists() and not path.parent.is_dir():
+        raise ConfigError("--plot", str(path.parent), "a directory (it is a file)")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    _pyplot().close(fig)
+    return path
+
+
+def eigenfrequencies_vs_load(model: FEModel, reduced: ModalModel, path: Path) -> Path:
+    """Figure 5b: the first three eigenfrequencies versus axial load up to the critical load."""
+    plt = _pyplot()
+    fcr = critical_load(model)
+    loads = np.linspace(0.0, fcr, 200)
+    full = np.array([eigenfrequencies(model, f, 3) for f in loads])
+    red = np.array([reduced.eigenfrequencies(f) for f in loads])
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for i in range(3):
+        ax.plot(loads, full[:, i], color="k", label="full FE model" if i == 0 else None)
+    for i in range(2):
+        ax.plot(loads, red[:, i], "--", color="tab:red",
+                label=f"reduced model (modes at {reduced.reference_load:g} N)" if i == 0 else None)
+    ax.axvline(fcr, color="0.5", lw=0.8)
+    ax.text(fcr, ax.get_ylim()[1] * 0.95, f" Fx,cr = {fcr:.0f} N", ha="right", va="top")
+    ax.set_xlabel("axial load Fx in N")
+    ax.set_ylabel("eigenfrequency f in Hz")
+    ax.set_title("Eigenfrequencies f1/2/3 versus axial load (figure 5b)")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="upper left", bbox_to_anchor=(0.0, 0.88))
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def frequency_response_full_vs_reduced(model: FEModel, reduced: ModalModel, axial_load: float,
+                                       freqs_hz: np.ndarray, path: Path) -> Path:
+    """Figure 6: amplitude and phase of Gy (and Gz) from the full and the reduced model."""
+    plt = _pyplot()
+    g_full = fe_frequency_response(model, axial_load, freqs_hz)
+    g_red = reduced.frequency_response(axial_load, freqs_hz)
+    fig, (ax_m, ax_p) = plt.subplots(2, 1, sharex=True, figsize=(7, 6))
+    curves = [(g_full[:, 0, 0], "k", "-", "full FE model, Gy"),
+              (g_full[:, 1, 1], "tab:gray", ":", "full FE model, Gz"),
+              (g_red[:, 0, 0], "tab:red", "--", "reduced modal model, Gy")]
+    for g, color, style, label in curves:
+        ax_m.semilogy(freqs_hz, np.abs(g), style, color=color, label=label)
+        phase = np.degrees(np.angle(g))
+        phase[phase <= -180.0 + 1e-6] += 360.0  # report the half-turn as +180 deg throughout
+        ax_p.plot(freqs_hz, phase, style, color=color)
+    ax_m.set_ylabel("|Gy/z| in 1/N (strain per N)")
+    ax_p.set_ylabel("arg Gy/z in deg")
+    ax_p.set_xlabel("frequency f in Hz")
+    ax_p.set_yticks([-180, -90, 0, 90, 180])
+    ax_m.set_title(f"Frequency responses at Fx = {axial_load:g} N (figure 6)")
+    for ax in (ax_m, ax_p):
+        ax.grid(True, alpha=0.3)
+    ax_m.legend(loc="lower left", fontsize=8)
+    fig.tight_layout()
+    return _save(fig, path)
