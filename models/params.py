@@ -49,7 +49,7 @@ _SCHEMA = {
         "actuator_stiffness": positive("N/m"),
     },
     "sensors": {
-        "strain_gauge_positions": number_list(positive("m"), 2, "gauge positions"),
+        "strain_gauge_positions": number_list(number("m"), 2, "gauge positions"),
         "max_condition_number": number(low=1.0, low_open=True),
     },
     "damping": {

@@ -1,0 +1,116 @@
+"""Model parameters: Table 1 defaults, key-by-key overrides, refusal of bad input."""
+
+import math
+
+import pytest
+
+from models import ConfigError, build_model, load_parameters, parameters_from_dict, reduce
+
+
+def test_defaults_are_table_1_of_the_paper(paper_params):
+    p = paper_params
+    assert (p.beam.length, p.beam.radius, p.beam.density) == (0.400, 4.0e-3, 2789.0)
+    assert (p.beam.youngs_modulus, p.beam.proportional_limit) == (75.8e9, 485.0e6)
+    assert (p.extension.length, p.extension.radius) == (7.5e-3, 6.0e-3)
+    assert (p.extension.density, p.extension.youngs_modulus) == (7810.0, 210.0e9)
+    assert (p.supports.rotational_stiffness, p.supports.lateral_stiffness,
+            p.supports.actuator_stiffness) == (192.4, 30.0e6, 22.0e6)
+    assert p.sensors.strain_gauge_positions == (0.148, 0.252)
+    assert p.damping.ratios == (0.015, 0.0045)
+    assert p.damping.identification_load == 2000.0
+    assert p.fe.nodes == 35
+
+
+def test_a_partial_file_overrides_only_its_keys(tmp_path, paper_params):
+    f = tmp_path / "stiffer.yaml"
+    f.write_text("supports:\n  rotational_stiffness: 250.0\nfe: {nodes: 21}\n")
+    p = load_parameters(f)
+    assert p.supports.rotational_stiffness == 250.0
+    assert p.fe.nodes == 21
+    assert p.supports.lateral_stiffness == paper_params.supports.lateral_stiffness
+    assert p.beam == paper_params.beam
+
+
+def test_yaml_exponent_without_sign_is_a_number(tmp_path):
+    """YAML 1.1 would read 80e9 as a string; users write it that way."""
+    f = tmp_path / "e.yaml"
+    f.write_text("beam: {youngs_modulus: 80e9}\n")
+    assert load_parameters(f).beam.youngs_modulus == 80e9
+
+
+@pytest.mark.parametrize(
+    ("overrides", "key", "expected_words"),
+    [
+        ({"beams": {"length": 0.4}}, "beams", "known keys"),
+        ({"beam": {"lenght": 0.4}}, "beam.lenght", "known keys"),
+        ({"supports": {"lateral_stiffness": -1.0}}, "supports.lateral_stiffness", "> 0"),
+        ({"supports": {"rotational_stiffness": 0.0}}, "supports.rotational_stiffness", "> 0"),
+        ({"supports": {"actuator_stiffness": "stiff"}}, "supports.actuator_stiffness", "finite number"),
+        ({"beam": {"radius": True}}, "beam.radius", "finite number"),
+        ({"beam": {"density": float("nan")}}, "beam.density", "finite number"),
+        ({"beam": {"length": None}}, "beam.length", "finite number"),
+        ({"fe": {"nodes": 4}}, "fe.nodes", "integer >= 5"),
+        ({"fe": {"nodes": 35.5}}, "fe.nodes", "integer"),
+        ({"sensors": {"strain_gauge_positions": [0.148, 0.45]}},
+         "sensors.strain_gauge_positions[1]", "inside the beam"),
+        ({"sensors": {"strain_gauge_positions": [0.0, 0.252]}},
+         "sensors.strain_gauge_positions[0]", "inside the beam"),
+        ({"sensors": {"strain_gauge_positions": [0.148]}}, "sensors.strain_gauge_positions", "list of 2"),
+        ({"sensors": {"strain_gauge_positions": [0.2, 0.2]}},
+         "sensors.strain_gauge_positions", "different"),
+        ({"damping": {"ratios": [0.015, 1.5]}}, "damping.ratios", "< 1"),
+        ({"beam": 0.4}, "beam", "mapping"),
+    ],
+)
+def test_bad_input_is_refused_naming_key_value_and_expectation(overrides, key, expected_words):
+    with pytest.raises(ConfigError) as err:
+        parameters_from_dict(overrides, source="test.yaml")
+    message = str(err.value)
+    assert err.value.key == key, message
+    assert key in message and "test.yaml" in message, message
+    assert expected_words in message, message
+    assert "expected" in message, message
+
+
+def test_missing_file_and_non_mapping_file_are_refused(tmp_path):
+    with pytest.raises(ConfigError, match="readable YAML file"):
+        load_parameters(tmp_path / "absent.yaml")
+    f = tmp_path / "list.yaml"
+    f.write_text("- 1\n- 2\n")
+    with pytest.raises(ConfigError, match="mapping at the top level"):
+        load_parameters(f)
+    g = tmp_path / "broken.yaml"
+    g.write_text("beam: {length: [\n")
+    with pytest.raises(ConfigError, match="valid YAML"):
+        load_parameters(g)
+
+
+def test_damping_identified_on_the_unloaded_beam_is_refused_as_negative_damping():
+    """The paper's ratios fitted at the unloaded eigenfrequencies need beta < 0."""
+    params = parameters_from_dict({"damping": {"identification_load": 0.0}})
+    with pytest.raises(ConfigError) as err:
+        build_model(params)
+    assert err.value.key == "damping.ratios"
+    assert "negative damping" in str(err.value) and "beta = -" in str(err.value)
+
+
+def test_identification_load_beyond_buckling_is_refused():
+    params = parameters_from_dict({"damping": {"identification_load": 3300.0}})
+    with pytest.raises(ConfigError, match="below the critical buckling load"):
+        build_model(params)
+
+
+def test_gauges_that_cannot_tell_the_modes_apart_are_refused_with_the_condition_number():
+    params = parameters_from_dict({"sensors": {"strain_gauge_positions": [0.148, 0.1481]}})
+    with pytest.raises(ConfigError) as err:
+        reduce(build_model(params))
+    assert err.value.key == "sensors.strain_gauge_positions"
+    assert "cond(C0 Phi) =" in str(err.value)
+
+
+def test_digest_identifies_the_parameter_set(paper_params):
+    same = load_parameters()
+    other = parameters_from_dict({"beam": {"radius": 4.1e-3}})
+    assert same.digest() == paper_params.digest()
+    assert other.digest() != paper_params.digest()
+    assert len(paper_params.digest()) == 64 and not math.isnan(int(paper_params.digest(), 16))

@@ -1,0 +1,150 @@
+"""The sampled plant: Southwell's law, exact discretisation, load tolerance, imperfections."""
+
+import numpy as np
+import pytest
+
+from models import ConfigError, critical_load, eigenfrequencies
+from models.plant import LoadRamp, Plant, load_plant_config, plant_config
+
+ZERO = np.zeros(4)
+
+
+def _run_until(plant: Plant, loads, forces=ZERO):
+    """Step the plant and record (load, deflection, angle) when each load is first passed."""
+    out = {}
+    pending = sorted(loads)
+    while pending:
+        plant.step(forces)
+        while pending and plant.axial_load >= pending[0]:
+            out[pending.pop(0)] = (plant.axial_load, *plant.deflection())
+    return out
+
+
+def test_bowed_beam_under_slowly_rising_load_follows_southwell(paper_model):
+    """Elastic deflection = Fx / (Fcr - Fx) x bow for a bow shaped like the buckling mode."""
+    fcr = critical_load(paper_model)
+    bow = 1e-4
+    cfg = plant_config({"bow": {"amplitude": bow, "angle_deg": 234.0},
+                        "load": {"start": 0.0, "end": fcr, "rate": 100.0}})
+    plant = Plant(paper_model, cfg)
+    results = _run_until(plant, [f * fcr for f in (0.2, 0.4, 0.6, 0.8, 0.9)])
+    for load, deflection, angle in results.values():
+        expected = bow * load / (fcr - load)
+        assert deflection == pytest.approx(expected, rel=0.02), (
+            f"at {load:.0f} N ({load / fcr:.2f} Fcr): {deflection * 1e3:.4f} mm, "
+            f"Southwell {expected * 1e3:.4f} mm")
+        assert angle == pytest.approx(234.0, abs=1e-6)
+
+
+def test_plant_has_the_fe_model_s_critical_load_and_frequencies(paper_model):
+    plant = Plant(paper_model, plant_config())
+    mu = np.linalg.eigvals(np.linalg.solve(plant._k_elastic, plant._k_geometric))
+    assert 1 / mu.real.max() == pytest.approx(critical_load(paper_model), rel=1e-6)
+    a, _ = plant.continuous(2000.0)
+    im = np.sort(np.linalg.eigvals(a).imag)
+    plant_f = np.unique(np.round(im[im > 0] / (2 * np.pi), 6))[:3]
+    np.testing.assert_allclose(plant_f, eigenfrequencies(paper_model, 2000.0, 3), rtol=1e-3)
+
+
+@pytest.mark.parametrize("load", [260.0, 2000.0, 3000.0])
+def test_steady_actuator_force_gives_the_full_model_s_static_strain(paper_model, load):
+    """The static shapes in the basis make the force-to-strain gain right (a purely modal
+    basis does not even get its sign right at low load)."""
+    cfg = plant_config({"load": {"start": load, "end": load}})
+    plant = Plant(paper_model, cfg)
+    force = np.array([5.0, -3.0, 2.0, 4.0])
+    for _ in range(int(1.5 * cfg.sample_rate)):
+        plant.step(force)
+    strain, _ = plant.measure()
+    expected = paper_model.output_matrix @ np.linalg.solve(
+        paper_model.load_stiffness(load), paper_model.input_matrix @ force)
+    np.testing.assert_allclose(strain, expected, rtol=0.01, err_msg=f"static strain at {load} N")
+
+
+def test_zero_order_hold_is_exact_whatever_the_sample_rate(paper_model):
+    """Piecewise constant forces: sampling at 2 kHz or 8 kHz gives the same states at the
+    common instants (an approximate discretisation would not)."""
+    states = []
+    for rate in (2000.0, 8000.0):
+        plant = Plant(paper_model, plant_config({"sample_rate": rate,
+                                                 "load": {"start": 1500.0, "end": 1500.0}}))
+        per = int(rate / 2000.0)
+        for k in range(200):
+            force = np.array([10.0 * np.sin(k / 7.0), 0.0, -5.0, 3.0 * (k % 3)])
+            for _ in range(per):
+                plant.step(force)
+        states.append(plant.displacement())
+    np.testing.assert_allclose(states[1], states[0], rtol=1e-8, atol=1e-12 * np.abs(states[0]).max())
+
+
+def test_discretisation_load_never_differs_from_the_applied_load_by_more_than_the_tolerance(paper_model):
+    tol = 2.0
+    cfg = plant_config({"load_tolerance": tol, "load": {"start": 260.0, "end": 1000.0, "rate": 400.0}})
+    plant = Plant(paper_model, cfg)
+    worst = 0.0
+    while plant.axial_load < 1000.0:
+        plant.step(ZERO)
+        worst = max(worst, abs(plant._bin * 2 * tol - plant.axial_load))
+    assert worst <= tol + 1e-9
+    assert plant.discretisations == pytest.approx((1000 - 260) / (2 * tol), abs=2), (
+        "one discretisation per tolerance cell crossed, none in between")
+
+
+def test_eccentric_load_bows_the_beam_away_from_the_load_line(paper_model):
+    """A load applied at an offset compresses the fibres on its side more; the beam curves
+    concave towards the offset and its middle moves the other way, so the lever arm grows."""
+    cfg = plant_config({"eccentricity": {"amplitude": 2e-4, "angle_deg": 30.0},
+                        "load": {"start": 0.0, "end": 2000.0, "rate": 400.0}})
+    results = _run_until(Plant(paper_model, cfg), [1000.0, 1999.0])
+    (_, d1, a1), (_, d2, a2) = results[1000.0], results[1999.0]
+    assert a1 == pytest.approx(210.0, abs=1e-6) and a2 == pytest.approx(210.0, abs=1e-6)
+    assert 0 < d1 < d2, "deflection grows with load"
+
+
+def test_reset_places_the_beam_in_static_equilibrium(paper_model):
+    cfg = plant_config({"bow": {"amplitude": 1e-4, "angle_deg": 90.0},
+                        "load": {"start": 2500.0, "end": 2500.0}})
+    plant = Plant(paper_model, cfg)
+    before, _ = plant.deflection()
+    for _ in range(500):
+        plant.step(ZERO)
+    after, _ = plant.deflection()
+    assert before == pytest.approx(1e-4 * 2500 / (critical_load(paper_model) - 2500), rel=1e-6)
+    assert after == pytest.approx(before, rel=1e-9), "no start-up transient"
+
+
+def test_measurement_noise_has_the_configured_rms_and_a_reproducible_seed(paper_model):
+    cfg = plant_config({"noise": {"strain": 1e-7, "load": 2.0, "seed": 7},
+                        "load": {"start": 1000.0, "end": 1000.0}})
+    runs = []
+    for _ in range(2):
+        plant = Plant(paper_model, cfg)
+        samples = []
+        for _ in range(6000):
+            strain, load = plant.measure()
+            samples.append([*strain, load])
+        runs.append(np.array(samples))
+    np.testing.assert_array_equal(runs[0], runs[1])
+    assert np.std(runs[0][:, :4], axis=0) == pytest.approx([1e-7] * 4, rel=0.05)
+    assert np.std(runs[0][:, 4]) == pytest.approx(2.0, rel=0.05)
+    assert np.mean(runs[0][:, 4]) == pytest.approx(1000.0, abs=0.1)
+
+
+def test_load_ramp_holds_then_ramps_then_stays():
+    ramp = LoadRamp(start=260.0, end=4000.0, rate=100.0, hold=1.0)
+    assert ramp.load_at(0.5) == 260.0
+    assert ramp.load_at(2.0) == pytest.approx(360.0)
+    assert ramp.load_at(100.0) == 4000.0
+    assert ramp.duration() == pytest.approx(1.0 + 37.4)
+
+
+def test_plant_config_is_validated(tmp_path):
+    with pytest.raises(ConfigError, match=r"noise\.strain"):
+        plant_config({"noise": {"strain": -1.0}})
+    with pytest.raises(ConfigError, match=r"bow\.amplitud"):
+        plant_config({"bow": {"amplitud": 1e-4}})
+    with pytest.raises(ConfigError, match="modes_per_plane"):
+        plant_config({"modes_per_plane": 1})
+    f = tmp_path / "plant.yaml"
+    f.write_text("bow: {amplitude: 1.5e-4, angle_deg: 234}\n")
+    assert load_plant_config(f).bow.amplitude == 1.5e-4
