@@ -231,6 +231,8 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
         text_ = p.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError("", str(p), f"a readable YAML file ({exc.strerror or exc})") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError("", str(p), f"a UTF-8 text file (byte {exc.start} is not UTF-8)") from None
     try:
         data = yaml.load(text_, Loader=_Loader)  # noqa: S506 (safe loader subclass)
     except yaml.YAMLError as exc:

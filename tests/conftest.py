@@ -2,6 +2,7 @@
 
 import pytest
 
+import tools  # noqa: F401  (single-threaded BLAS as beamctl runs it; before numpy loads)
 from models import build_model, load_parameters, reduce
 
 

@@ -6,7 +6,7 @@ import argparse
 import sys
 
 from models.schema import ConfigError
-from tools import model_cmd
+from tools import gains_cmd, model_cmd
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -15,6 +15,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Active buckling control of a beam-column with piezo-elastic supports.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     model_cmd.add_parser(sub)
+    gains_cmd.add_parser(sub)
     return parser
 
 

@@ -80,3 +80,36 @@ def frequency_response_full_vs_reduced(model: FEModel, reduced: ModalModel, axia
     ax_m.legend(loc="lower left", fontsize=8)
     fig.tight_layout()
     return _save(fig, path)
+
+
+def gains_vs_load(table, path: Path) -> Path:
+    """|K| versus axial load for support A, y direction, one curve per state."""
+    plt = _pyplot()
+    names = {0: "q1y", 2: "q2y", 4: "dq1y/dt", 6: "dq2y/dt", 8: "int q1y", 10: "int q2y"}
+    fig, axes = plt.subplots(1, 3, figsize=(12, 4), sharex=True)
+    groups = [("displacement gains (N per modal unit)", (0, 2)),
+              ("velocity gains (N s per modal unit)", (4, 6)),
+              ("integral gains (N per modal unit s)", (8, 10))]
+    for ax, (title, cols) in zip(axes, groups, strict=True):
+        for c in cols:
+            style = "o-" if table.schedule.mode == "paper" else "-"
+            ax.semilogy(table.loads_n, np.abs(table.gains[:, 0, c]), style, ms=3, label=names[c])
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel("axial load Fx in N")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    axes[0].set_ylabel("|K| (row Fay,A)")
+    fcr = None
+    try:
+        from models import build_model, critical_load
+
+        fcr = critical_load(build_model(table.model_parameters))
+    except ConfigError:
+        pass
+    if fcr:
+        for ax in axes:
+            ax.axvline(fcr, color="0.5", lw=0.8, ls="--")
+    fig.suptitle(f"Integral LQR gains K(Fx), {table.schedule.mode} schedule "
+                 f"(dashed: critical load {fcr:.0f} N)" if fcr else "Integral LQR gains K(Fx)")
+    fig.tight_layout()
+    return _save(fig, path)

@@ -1,0 +1,33 @@
+"""Integral LQR gain design, gain table files and the gain schedule K(Fx).
+
+Turns a model (models/) into a gain table file offline and reads it back, validated, for the
+real-time loop (rt/).
+"""
+
+from gains.discrete import LoopCheck, VelocityFilter, velocity_filter
+from gains.lqr import Weights, augmented_system, lqr_gain
+from gains.schedule import GainSchedule
+from gains.table import (
+    DesignSettings,
+    GainTable,
+    GainTableError,
+    ScheduleSettings,
+    load_table,
+    write_table,
+)
+
+__all__ = [
+    "DesignSettings",
+    "GainSchedule",
+    "GainTable",
+    "GainTableError",
+    "LoopCheck",
+    "ScheduleSettings",
+    "VelocityFilter",
+    "Weights",
+    "augmented_system",
+    "load_table",
+    "lqr_gain",
+    "velocity_filter",
+    "write_table",
+]

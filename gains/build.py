@@ -1,0 +1,75 @@
+"""Build a gain table: the integral LQR at every grid load, and the discrete closed-loop
+check at every grid point and every midpoint between neighbours."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import replace
+from importlib import metadata
+
+import numpy as np
+
+from gains.defaults import DEFAULT_DESIGN, DEFAULT_SCHEDULE, PAPER_GRID_N
+from gains.discrete import LoopCheck, check_load, velocity_filter
+from gains.lqr import lqr_gain
+from gains.schedule import GainSchedule
+from gains.table import DesignSettings, GainTable, ScheduleSettings
+from models.fe import FEModel
+from models.modal import reduce
+
+Progress = Callable[[int, int, str], None]
+
+
+def tool_version() -> str:
+    try:
+        return metadata.version("beamctl")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def check_points(loads: Sequence[float]) -> list[float]:
+    """Grid points and the midpoints between neighbours, ascending."""
+    loads = list(loads)
+    mids = [(a + b) / 2 for a, b in zip(loads[:-1], loads[1:], strict=True)]
+    return sorted(loads + mids)
+
+
+def closed_loop_checks(model: FEModel, table: GainTable, progress: Progress | None = None,
+                       done: int = 0, total: int | None = None) -> tuple[LoopCheck, ...]:
+    """The closed-loop check of ``table`` at every grid point and midpoint, with the gain the
+    schedule would use there."""
+    filt = velocity_filter(table.design.velocity_cutoff_hz, table.design.sample_rate_hz)
+    schedule = GainSchedule(table)
+    points = check_points(table.loads_n)
+    total = total if total is not None else len(points)
+    results = []
+    for i, load in enumerate(points):
+        results.append(check_load(model, load, schedule.gain_at(load), table.c0_phi_inv, filt))
+        if progress:
+            progress(done + i + 1, total, f"check {load:7.1f} N")
+    return tuple(results)
+
+
+def build_table(model: FEModel, loads_n: Sequence[float] | None = None, mode: str = "interpolate",
+                design: DesignSettings = DEFAULT_DESIGN, schedule: ScheduleSettings | None = None,
+                check: bool = True, force: bool = False,
+                progress: Progress | None = None) -> GainTable:
+    """Design K(Fx) on the grid ``loads_n`` (default: 0 to 4000 N every 50 N, or the paper's
+    0 to 3500 N every 500 N in ``paper`` mode) and check the closed loop."""
+    if loads_n is None:
+        loads_n = PAPER_GRID_N if mode == "paper" else np.arange(0.0, 4000.0 + 1e-9, 50.0)
+    loads = np.asarray(loads_n, dtype=float)
+    schedule = schedule or replace(DEFAULT_SCHEDULE, mode=mode)
+    reduced = reduce(model)
+    total = len(loads) + (len(check_points(loads)) if check else 0)
+    gains = np.empty((len(loads), 4, 12))
+    for i, load in enumerate(loads):
+        gains[i] = lqr_gain(reduced, load, design.weights)
+        if progress:
+            progress(i + 1, total, f"LQR {load:7.1f} N")
+    table = GainTable(loads_n=loads, gains=gains, c0_phi_inv=reduced.c0_phi_inv, design=design,
+                      schedule=schedule, model_parameters=model.params, forced=force,
+                      tool_version=tool_version())
+    if check:
+        table = replace(table, checks=closed_loop_checks(model, table, progress, len(loads), total))
+    return table

@@ -1,0 +1,144 @@
+"""Gain table files: the shipped default, round trips, and refusal of every bad file."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import yaml
+
+from gains.build import build_table, check_points, closed_loop_checks
+from gains.defaults import default_table_path
+from gains.table import GainTableError, load_table, write_table
+from models import build_model, parameters_from_dict
+
+
+@pytest.fixture(scope="module")
+def default_table(paper_params):
+    return load_table(default_table_path(), paper_params)
+
+
+@pytest.fixture(scope="module")
+def small_table(paper_model):
+    return build_table(paper_model, [0.0, 1000.0, 2000.0], check=True)
+
+
+def test_default_table_covers_0_to_4000_N_every_50_N(default_table):
+    np.testing.assert_array_equal(default_table.loads_n, np.arange(0.0, 4001.0, 50.0))
+    assert default_table.gains.shape == (81, 4, 12)
+    assert default_table.schedule.mode == "interpolate"
+    assert default_table.design.sample_rate_hz == 2500.0
+    assert default_table.all_stable and not default_table.forced
+
+
+def test_default_table_is_stable_at_every_point_and_midpoint_beyond_the_critical_load(
+        paper_model, default_table):
+    """Recomputed, not read from the file: the discrete loop with the full FE model."""
+    checks = closed_loop_checks(paper_model, default_table)
+    assert [c.load_n for c in checks] == check_points(default_table.loads_n)
+    assert len(checks) == 161 and checks[-1].load_n == 4000.0
+    unstable = [(c.load_n, round(c.spectral_radius, 6)) for c in checks if not c.stable]
+    assert not unstable, f"closed loop unstable at (load N, spectral radius): {unstable}"
+
+
+def test_regenerating_the_default_table_gives_the_same_numbers(paper_model, default_table):
+    fresh = build_table(paper_model, check=False)
+    np.testing.assert_allclose(fresh.gains, default_table.gains, rtol=1e-9,
+                               atol=1e-12 * np.abs(default_table.gains).max(),
+                               err_msg="gains/default.yaml is stale: run `beamctl gains build "
+                                       "--out gains/default.yaml`")
+    np.testing.assert_allclose(fresh.c0_phi_inv, default_table.c0_phi_inv, rtol=1e-12)
+    assert fresh.design == default_table.design and fresh.schedule == default_table.schedule
+
+
+def test_a_written_table_reads_back_bit_for_bit(tmp_path, small_table, paper_params):
+    path = write_table(small_table, tmp_path / "t.yaml")
+    back = load_table(path, paper_params)
+    np.testing.assert_array_equal(back.gains, small_table.gains)
+    np.testing.assert_array_equal(back.loads_n, small_table.loads_n)
+    np.testing.assert_array_equal(back.c0_phi_inv, small_table.c0_phi_inv)
+    assert back.design == small_table.design and back.checks == small_table.checks
+    assert back.created == small_table.created and back.tool_version == small_table.tool_version
+
+
+def _edited(tmp_path, table, edit) -> str:
+    data = table.to_dict()
+    edit(data)
+    path = tmp_path / "edited.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def _set_nan(d):
+    d["gains"][1][0][3] = float("nan")
+
+
+def _swap_loads(d):
+    d["loads_N"][0], d["loads_N"][1] = d["loads_N"][1], d["loads_N"][0]
+
+
+@pytest.mark.parametrize(("edit", "field", "words"), [
+    (_set_nan, "gains", "non-finite"),
+    (lambda d: d["gains"][2].pop(), "gains", "shape"),
+    (_swap_loads, "loads_N", "strictly increasing"),
+    (lambda d: d["c0_phi_inv"][0].__setitem__(0, "x"), "c0_phi_inv", "numbers"),
+    (lambda d: d["model"]["parameters"]["beam"].__setitem__("radius", 0.0041), "model.sha256",
+     "edited after"),
+    (lambda d: d.pop("design"), "design.sample_rate_hz", "missing"),
+    (lambda d: d["design"].__setitem__("velocity_cutoff_hz", 2000.0), "design.velocity_cutoff_hz",
+     "Nyquist"),
+    (lambda d: d["design"]["R_diagonal"].__setitem__(0, 0.0), "design.R_diagonal", "positive"),
+    (lambda d: d["schedule"].__setitem__("mode", "nearest"), "schedule.mode", "one of"),
+    (lambda d: d["check"]["points"][0].__setitem__("spectral_radius", 1.2), "check.forced",
+     "edited by hand"),
+    (lambda d: d.__setitem__("format", "something-else/1"), "format", "not a beamctl gain table"),
+])
+def test_hand_edited_table_is_refused_naming_the_field(tmp_path, small_table, paper_params,
+                                                       edit, field, words):
+    path = _edited(tmp_path, small_table, edit)
+    with pytest.raises(GainTableError) as err:
+        load_table(path, paper_params)
+    assert err.value.key == field, str(err.value)
+    assert words in str(err.value), str(err.value)
+
+
+def test_truncated_table_is_refused(tmp_path, small_table, paper_params):
+    text = write_table(small_table, tmp_path / "full.yaml").read_text()
+    for cut in (len(text) // 3, len(text) // 2, len(text) - 40):
+        path = tmp_path / f"cut{cut}.yaml"
+        path.write_text(text[:cut])
+        with pytest.raises(GainTableError) as err:
+            load_table(path, paper_params)
+        assert "expected" in str(err.value)
+
+
+def test_corrupted_bytes_are_refused(tmp_path, paper_params):
+    path = tmp_path / "garbage.yaml"
+    path.write_bytes(bytes(range(256)) * 4)
+    with pytest.raises(GainTableError):
+        load_table(path, paper_params)
+    missing = tmp_path / "absent.yaml"
+    with pytest.raises(GainTableError, match="readable"):
+        load_table(missing, paper_params)
+
+
+def test_table_for_another_model_is_refused(tmp_path, small_table):
+    path = write_table(small_table, tmp_path / "t.yaml")
+    other = parameters_from_dict({"supports": {"rotational_stiffness": 200.0}})
+    with pytest.raises(GainTableError) as err:
+        load_table(path, other)
+    assert err.value.key == "model.sha256" and "regenerate" in str(err.value)
+
+
+def test_unstable_table_is_written_only_when_forced(tmp_path, paper_model):
+    unstable = build_table(paper_model, [3000.0, 3500.0], mode="paper")
+    assert not unstable.all_stable, "the 3000 N gain cannot hold the buckled beam at 3250 N"
+    with pytest.raises(GainTableError, match="--force"):
+        write_table(unstable, tmp_path / "u.yaml")
+    path = write_table(replace(unstable, forced=True), tmp_path / "u.yaml")
+    back = load_table(path, paper_model.params)
+    assert back.forced and not back.all_stable
+
+
+def test_model_parameters_in_the_table_rebuild_the_same_model(default_table, paper_model):
+    rebuilt = build_model(default_table.model_parameters)
+    np.testing.assert_array_equal(rebuilt.elastic_stiffness, paper_model.elastic_stiffness)

@@ -1,0 +1,134 @@
+"""``beamctl gains build|check|show``: offline gain generation and inspection."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from gains.build import build_table, closed_loop_checks
+from gains.defaults import default_table_path
+from gains.table import GainTable, load_table, write_table
+from models import build_model, load_parameters
+from models.schema import ConfigError
+from tools.progress import ProgressBar
+
+
+def parse_grid(text: str) -> np.ndarray:
+    """``start:stop:step`` in N, stop included."""
+    parts = text.split(":")
+    try:
+        start, stop, step = (float(p) for p in parts)
+    except ValueError:
+        raise ConfigError("--grid", text, "START:STOP:STEP in N, e.g. 0:4000:50") from None
+    if not (np.isfinite([start, stop, step]).all() and step > 0 and stop >= start >= 0):
+        raise ConfigError("--grid", text, "0 <= START <= STOP and STEP > 0")
+    count = int(np.floor((stop - start) / step + 1e-9)) + 1
+    if count > 10_000:
+        raise ConfigError("--grid", text, f"at most 10000 grid points (this is {count})")
+    return start + step * np.arange(count)
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("gains", help="integral LQR gain tables: build, check, show")
+    gsub = p.add_subparsers(dest="gains_command", metavar="ACTION", required=True)
+
+    b = gsub.add_parser("build", help="design K(Fx) over a load grid and check the closed loop")
+    b.add_argument("--config", metavar="F", help="model parameters (YAML) over the paper's Table 1")
+    b.add_argument("--grid", metavar="START:STOP:STEP",
+                   help="load grid in N (default 0:4000:50; paper mode 0:3500:500)")
+    b.add_argument("--mode", choices=("interpolate", "paper"), default="interpolate",
+                   help="schedule: linear interpolation, or the paper's stepwise switching")
+    b.add_argument("--out", metavar="FILE", default="gain-table.yaml", help="where to write the table")
+    b.add_argument("--force", action="store_true",
+                   help="write the table even if the closed loop is unstable somewhere (marked forced)")
+    b.set_defaults(run=run_build)
+
+    c = gsub.add_parser("check", help="the discrete closed loop at every grid point and midpoint")
+    c.add_argument("file", nargs="?", help="gain table (default: the shipped gains/default.yaml)")
+    c.add_argument("--json", action="store_true", help="print one JSON object")
+    c.set_defaults(run=run_check)
+
+    s = gsub.add_parser("show", help="gains versus load")
+    s.add_argument("file", nargs="?", help="gain table (default: the shipped gains/default.yaml)")
+    s.add_argument("--plot", metavar="DIR", help="write gains versus load as PNG into DIR")
+    s.set_defaults(run=run_show)
+
+
+def _load(file: str | None) -> GainTable:
+    return load_table(file or default_table_path())
+
+
+def run_build(args: argparse.Namespace) -> int:
+    grid = parse_grid(args.grid) if args.grid else None
+    model = build_model(load_parameters(args.config))
+    bar = ProgressBar("gains build")
+    table = build_table(model, grid, mode=args.mode, force=args.force, progress=bar)
+    elapsed = bar.close()
+    worst = max(table.checks, key=lambda c: c.spectral_radius)
+    print(f"{len(table.loads_n)} grid points {table.loads_n[0]:g}..{table.loads_n[-1]:g} N, "
+          f"mode {table.schedule.mode}, {len(table.checks)} closed-loop checks in {elapsed:.1f} s")
+    print(f"largest spectral radius {worst.spectral_radius:.6f} at {worst.load_n:g} N; "
+          f"least damping {min(c.min_damping for c in table.checks):.4g}")
+    if not table.all_stable:
+        unstable = [c.load_n for c in table.checks if not c.stable]
+        more = " ..." if len(unstable) > 8 else ""
+        print(f"UNSTABLE at {len(unstable)} check points: {unstable[:8]}{more}")
+        if not args.force:
+            print("table not written (use --force to write it, marked as forced)")
+            return 1
+    path = write_table(table, args.out)
+    print(f"wrote {path}{' (forced: unstable points)' if table.forced and not table.all_stable else ''}")
+    return 0
+
+
+def run_check(args: argparse.Namespace) -> int:
+    table = _load(args.file)
+    model = build_model(table.model_parameters)
+    bar = ProgressBar("gains check") if not args.json else None
+    checks = closed_loop_checks(model, table, progress=bar)
+    if bar:
+        bar.close()
+    all_stable = all(c.stable for c in checks)
+    if args.json:
+        print(json.dumps({
+            "points": [{"load_N": c.load_n, "spectral_radius": c.spectral_radius, "stable": c.stable,
+                        "min_damping": c.min_damping} for c in checks],
+            "all_stable": all_stable}, indent=1))
+    else:
+        print(f"{'load N':>8} {'spectral radius':>16} {'min damping':>12}  stable")
+        for c in checks:
+            print(f"{c.load_n:8.1f} {c.spectral_radius:16.6f} {c.min_damping:12.5f}  "
+                  f"{'yes' if c.stable else 'NO'}")
+        print(f"all stable: {'yes' if all_stable else 'NO'}")
+    return 0 if all_stable else 1
+
+
+def run_show(args: argparse.Namespace) -> int:
+    table = _load(args.file)
+    d, s = table.design, table.schedule
+    print(f"gain table: {args.file or default_table_path()}")
+    print(f"created {table.created} by beamctl {table.tool_version}; "
+          f"model sha256 {table.model_sha256[:16]}...")
+    print(f"designed for {d.sample_rate_hz:g} Hz, velocity filter cut-off {d.velocity_cutoff_hz:g} Hz; "
+          f"schedule {s.mode}, load filter {s.load_filter_hz:g} Hz, hysteresis {s.hysteresis_n:g} N")
+    print(f"Q diagonal {', '.join(f'{x:.3g}' for x in d.weights.q)}")
+    print(f"R diagonal {', '.join(f'{x:.3g}' for x in d.weights.r)}")
+    print(f"check: {'all stable' if table.all_stable else 'UNSTABLE points'}"
+          f"{' (forced)' if table.forced else ''}")
+    print()
+    print("gains of support A, y direction (row Fay,A), by state:")
+    names = ["q1y", "q2y", "dq1y", "dq2y", "iq1y", "iq2y"]
+    cols = [0, 2, 4, 6, 8, 10]
+    print(f"{'load N':>8} " + " ".join(f"{n:>11}" for n in names))
+    step = max(1, len(table.loads_n) // 16)
+    for i in range(0, len(table.loads_n), step):
+        print(f"{table.loads_n[i]:8.0f} " + " ".join(f"{table.gains[i, 0, c]:11.4g}" for c in cols))
+    if args.plot:
+        from tools import plots
+
+        path = plots.gains_vs_load(table, Path(args.plot) / "gains_vs_load.png")
+        print(f"\nwrote {path}")
+    return 0

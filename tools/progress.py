@@ -1,0 +1,49 @@
+"""Progress display for long commands: a bar redrawn in place on a terminal, a line every
+10 % otherwise (logs, CI)."""
+
+from __future__ import annotations
+
+import sys
+import time
+from typing import TextIO
+
+
+class ProgressBar:
+    """Call with (done, total, label); ``close()`` ends the line."""
+
+    def __init__(self, title: str, stream: TextIO | None = None, width: int = 30) -> None:
+        self.title = title
+        self.stream = stream or sys.stderr
+        self.width = width
+        self.tty = self.stream.isatty()
+        self._last_draw = 0.0
+        self._last_decile = -1
+        self._start = time.monotonic()
+        self._open = False
+
+    def __call__(self, done: int, total: int, label: str = "") -> None:
+        fraction = done / total if total else 1.0
+        if self.tty:
+            now = time.monotonic()
+            if now - self._last_draw < 0.1 and done < total:
+                return
+            self._last_draw = now
+            filled = int(round(self.width * fraction))
+            bar = "#" * filled + "-" * (self.width - filled)
+            self.stream.write(f"\r{self.title} [{bar}] {done}/{total} {label:<24}")
+            self._open = True
+        else:
+            decile = int(fraction * 10)
+            if decile == self._last_decile:
+                return
+            self._last_decile = decile
+            self.stream.write(f"{self.title}: {100 * fraction:3.0f} % ({done}/{total}) {label}\n")
+        self.stream.flush()
+
+    def close(self) -> float:
+        """End the display; return the elapsed time in s."""
+        elapsed = time.monotonic() - self._start
+        if self.tty and self._open:
+            self.stream.write(f"\r{self.title}: done in {elapsed:.1f} s{' ' * (self.width + 30)}\n")
+            self.stream.flush()
+        return elapsed
