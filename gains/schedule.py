@@ -40,6 +40,7 @@ class GainSchedule:
         self._out = np.zeros(self._gains.shape[1:])
         self.filtered_load_n = self._first
         self.index = 0
+        self.offset_n = 0.0
         self.out_of_range = False
         self.reset(self._first)
 
@@ -55,8 +56,19 @@ class GainSchedule:
         return min(max(bisect.bisect_right(self._loads, load) - 1, 0), self._last_index)
 
     def _select(self, load: float) -> None:
+        """Set ``index`` and ``offset_n`` (load above grid point ``index`` used for
+        interpolation; 0 in paper mode and outside the grid) and form K in the out array."""
+        self._locate(load)
+        if self.offset_n == 0.0:
+            self._out[...] = self._gains[self.index]
+        else:
+            np.multiply(self._slopes[self.index], self.offset_n, out=self._out)
+            self._out += self._gains[self.index]
+
+    def _locate(self, load: float) -> None:
         loads = self._loads
         self.out_of_range = load < self._first or load > self._last
+        self.offset_n = 0.0
         if self._paper:
             i = self.index
             while i < self._last_index and load >= loads[i + 1] + self._half_band:
@@ -64,19 +76,29 @@ class GainSchedule:
             while i > 0 and load < loads[i] - self._half_band:
                 i -= 1
             self.index = i
-            self._out[...] = self._gains[i]
-            return
-        if load <= self._first:
+        elif load <= self._first:
             self.index = 0
-            self._out[...] = self._gains[0]
         elif load >= self._last:
             self.index = self._last_index
-            self._out[...] = self._gains[self._last_index]
         else:
             i = self._floor_index(load)
             self.index = i
-            np.multiply(self._slopes[i], load - loads[i], out=self._out)
-            self._out += self._gains[i]
+            self.offset_n = load - loads[i]
+
+    @property
+    def slopes(self) -> np.ndarray:
+        """dK/dFx per grid interval [G x 4 x 12] (zero for the last point): K(Fx) =
+        gains[index] + offset_n slopes[index]."""
+        return self._slopes
+
+    def locate(self, load_cell_n: float) -> None:
+        """Filter the reading and find ``index`` and ``offset_n`` without forming K (for a
+        loop that applies the gains itself); same rules as ``update``."""
+        if load_cell_n != load_cell_n or load_cell_n in (math.inf, -math.inf):
+            self.out_of_range = True
+            return
+        self.filtered_load_n += self._alpha * (load_cell_n - self.filtered_load_n)
+        self._locate(self.filtered_load_n)
 
     def update(self, load_cell_n: float) -> np.ndarray:
         """Filter the new load-cell reading and return K(Fx) [4 x 12] (a reused array).

@@ -6,7 +6,7 @@ import argparse
 import sys
 
 from models.schema import ConfigError
-from tools import gains_cmd, model_cmd
+from tools import bench_cmd, gains_cmd, log_cmd, model_cmd
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -16,6 +16,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     model_cmd.add_parser(sub)
     gains_cmd.add_parser(sub)
+    log_cmd.add_parser(sub)
+    bench_cmd.add_parser(sub)
     return parser
 
 

@@ -113,3 +113,41 @@ def gains_vs_load(table, path: Path) -> Path:
                  f"(dashed: critical load {fcr:.0f} N)" if fcr else "Integral LQR gains K(Fx)")
     fig.tight_layout()
     return _save(fig, path)
+
+
+def telemetry_figures(header: dict, rows: np.ndarray, out_dir: Path) -> list[Path]:
+    """From a controller telemetry file: figure 7a (modal displacement of the first modes
+    versus load), 7b (their path in the y-z plane) and the stack voltages versus load."""
+    plt = _pyplot()
+    col = {name: i for i, name in enumerate(header["columns"])}
+    load = rows[:, col["load_filtered_N"]]
+    running = rows[:, col["state"]] == 2
+    q1y, q1z = rows[:, col["q_1y"]], rows[:, col["q_1z"]]
+    paths = []
+
+    fig, (ax_a, ax_b) = plt.subplots(1, 2, figsize=(11, 4.5))
+    ax_a.plot(load[running], np.hypot(q1y, q1z)[running] * 1e6, lw=0.8)
+    ax_a.set_xlabel("axial load Fx in N (filtered load cell)")
+    ax_a.set_ylabel("|q1| in 1e-6 (modal units)")
+    ax_a.set_title("(a) first-mode modal displacement versus load")
+    ax_a.grid(True, alpha=0.3)
+    ax_b.plot(q1y[running] * 1e6, q1z[running] * 1e6, lw=0.8)
+    ax_b.set_xlabel("q1,y in 1e-6")
+    ax_b.set_ylabel("q1,z in 1e-6")
+    ax_b.set_title("(b) first-mode path in the y-z plane")
+    ax_b.set_aspect("equal", adjustable="datalim")
+    ax_b.grid(True, alpha=0.3)
+    fig.tight_layout()
+    paths.append(_save(fig, Path(out_dir) / "fig7_modal_displacement.png"))
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for name in ("a1", "a2", "a3", "b1", "b2", "b3"):
+        ax.plot(load, rows[:, col[f"voltage_{name}_V"]], lw=0.7, label=name)
+    ax.set_xlabel("axial load Fx in N (filtered load cell)")
+    ax.set_ylabel("stack voltage in V")
+    ax.set_title("Piezo stack voltages")
+    ax.grid(True, alpha=0.3)
+    ax.legend(ncol=6, fontsize=8)
+    fig.tight_layout()
+    paths.append(_save(fig, Path(out_dir) / "voltages.png"))
+    return paths

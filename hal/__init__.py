@@ -1,0 +1,1 @@
+"""Hardware abstraction: the interface (hal.base) and its backends, chosen by name."""

@@ -1,0 +1,142 @@
+"""The hardware abstraction: one interface, one backend per kind of hardware.
+
+In the style of python-can's ``BusABC``: the shared behaviour (open/close as a context
+manager, time-outs, staleness, the typed errors) is written once here; a backend supplies a
+narrow set of hooks (``_open``, ``_read``, ``_write``, ``_close``). Backends are chosen by
+name and imported lazily (``hal.open_backend``), so the simulated plant never needs a CAN
+library, and nothing ever falls back from the DAQ to the plant.
+
+One ``read()`` returns one sample: time stamp, sequence number, the four strains
+(eps_y1, eps_z1, eps_y2, eps_z2) and the axial load. ``write()`` takes the six stack
+voltages (a1, a2, a3 at support A, b1, b2, b3 at support B).
+"""
+
+from __future__ import annotations
+
+import abc
+import time
+
+import numpy as np
+
+
+class HalError(Exception):
+    """Base of all HAL errors; the safety supervisor faults on any of them."""
+
+
+class HalConfigurationError(HalError):
+    """The backend was configured wrongly (unknown name, bad setting)."""
+
+
+class HalConnectionLost(HalError):
+    """The hardware went away (bus-off, process gone, device unplugged)."""
+
+
+class HalStaleData(HalError):
+    """No new sample arrived within the time-out."""
+
+
+class HalProtocolError(HalError):
+    """Data arrived but does not follow the contract (wrong frame, bad value)."""
+
+
+class Sample:
+    """One sensor sample. Backends fill one instance in place on each read: it is valid until
+    the next ``read()`` (copy what must outlive it)."""
+
+    __slots__ = ("timestamp", "sequence", "strains", "axial_load")
+
+    def __init__(self) -> None:
+        self.timestamp = 0.0          # s, backend clock (plant time or receive time)
+        self.sequence = -1            # rolling counter of the source
+        self.strains = np.zeros(4)    # eps_y1, eps_z1, eps_y2, eps_z2
+        self.axial_load = 0.0         # N, load cell
+
+    def copy_from(self, other: Sample) -> None:
+        self.timestamp, self.sequence, self.axial_load = other.timestamp, other.sequence, other.axial_load
+        self.strains[:] = other.strains
+
+
+N_STRAINS = 4
+N_VOLTAGES = 6
+
+
+class HalBase(abc.ABC):
+    """Shared behaviour of every backend. Use as a context manager::
+
+        with open_backend(config) as hal:
+            sample = hal.read(timeout=0.01)
+            hal.write(voltages)
+    """
+
+    name = "base"
+
+    def __init__(self, sample_rate_hz: float) -> None:
+        if not sample_rate_hz > 0:
+            raise HalConfigurationError(f"sample rate must be positive, got {sample_rate_hz!r}")
+        self.sample_rate_hz = float(sample_rate_hz)
+        self.sample_period = 1.0 / self.sample_rate_hz
+        self.is_open = False
+        self.reads = 0
+        self.writes = 0
+        self._sample = Sample()
+
+    # -- hooks for backends --------------------------------------------------------------------
+    @abc.abstractmethod
+    def _open(self) -> None:
+        """Acquire the hardware (or start the plant)."""
+
+    @abc.abstractmethod
+    def _read(self, sample: Sample, timeout: float | None) -> bool:
+        """Fill ``sample`` with the next sample; False if none arrived within ``timeout``."""
+
+    @abc.abstractmethod
+    def _write(self, voltages: np.ndarray) -> None:
+        """Send six voltages."""
+
+    @abc.abstractmethod
+    def _close(self) -> None:
+        """Release the hardware. Must be safe to call after a failed ``_open``."""
+
+    # -- shared behaviour --------------------------------------------------------------------------
+    def open(self) -> HalBase:
+        if not self.is_open:
+            self._open()
+            self.is_open = True
+        return self
+
+    def close(self) -> None:
+        if self.is_open:
+            self.is_open = False
+            self._close()
+
+    def __enter__(self) -> HalBase:
+        return self.open()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def read(self, timeout: float | None = None) -> Sample:
+        """The next sample (the same object each time, refilled). Raises HalStaleData when
+        nothing arrives within ``timeout`` seconds (None: ten sample periods)."""
+        if not self.is_open:
+            raise HalConnectionLost(f"{self.name}: read on a closed backend")
+        wait = 10 * self.sample_period if timeout is None else timeout
+        if not self._read(self._sample, wait):
+            raise HalStaleData(f"{self.name}: no sample within {wait * 1e3:.1f} ms")
+        self.reads += 1
+        return self._sample
+
+    def write(self, voltages: np.ndarray) -> None:
+        """Send the six stack voltages (V)."""
+        if not self.is_open:
+            raise HalConnectionLost(f"{self.name}: write on a closed backend")
+        self._write(voltages)
+        self.writes += 1
+
+    def status(self) -> dict:
+        """Counters for reports (backends add their own)."""
+        return {"backend": self.name, "reads": self.reads, "writes": self.writes}
+
+    @staticmethod
+    def now() -> float:
+        return time.monotonic()

@@ -1,0 +1,91 @@
+"""Force allocation: the lateral force (Fy, Fz) wanted at a support, produced by its three
+piezo stacks at 120 deg.
+
+Stack i of a support pushes along e_i = (cos t_i, sin t_i), t_i = t_1 + (i - 1) 120 deg,
+with force f_i = k (V_i - V_bias) (k: force constant in N/V). Because e_1 + e_2 + e_3 = 0
+and sum e_i e_i^T = 3/2 I, the stack forces f_i = 2/3 e_i . F + c give the lateral force F
+for any common part c. The common part is chosen to centre the three voltages in
+[V_min, V_max], i.e. to keep every voltage as far from its limits as possible. When the
+spread of the voltages does not fit, the force is scaled down as a whole (direction kept)
+until it does, rather than clipping stacks one by one (which would turn the force).
+A non-finite demand produces no force: the voltages go to the middle of the range.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from rt.config import Actuators
+
+STACKS = 3
+
+
+class Allocator:
+    """Both supports: four forces (Fay,A, Faz,A, Fay,B, Faz,B) -> six voltages.
+
+    ``allocate(u, voltages)`` writes the voltages and returns nothing; the scale applied per
+    support (1.0: reachable, < 1: saturated, 0: invalid demand) is left in ``scale_a`` and
+    ``scale_b`` and the demanded forces in ``demand``.
+    """
+
+    def __init__(self, actuators: Actuators) -> None:
+        self.v_min = actuators.min_voltage
+        self.v_max = actuators.max_voltage
+        self.v_mid = 0.5 * (self.v_min + self.v_max)
+        self.v_span = self.v_max - self.v_min
+        self.bias = actuators.bias_voltage
+        self.force_constant = actuators.force_constant
+        # per support, per stack: volts per newton of Fy and of Fz (2/3 e_i / k)
+        self._coef = []
+        for t1 in actuators.orientation_deg:
+            row = []
+            for i in range(STACKS):
+                t = math.radians(t1 + 120.0 * i)
+                row.append((2.0 / 3.0 * math.cos(t) / self.force_constant,
+                            2.0 / 3.0 * math.sin(t) / self.force_constant))
+            self._coef.append(tuple(row))
+        self.axes = np.array([[[math.cos(math.radians(t1 + 120.0 * i)),
+                                math.sin(math.radians(t1 + 120.0 * i))] for i in range(STACKS)]
+                              for t1 in actuators.orientation_deg])
+        self.scale_a = 1.0
+        self.scale_b = 1.0
+
+    def _support(self, fy: float, fz: float, coef, voltages: np.ndarray, first: int) -> float:
+        (ay1, az1), (ay2, az2), (ay3, az3) = coef
+        if not (fy - fy == 0.0 and fz - fz == 0.0):  # NaN or infinite demand: no force
+            fy = fz = math.nan
+        g1 = ay1 * fy + az1 * fz
+        g2 = ay2 * fy + az2 * fz
+        g3 = ay3 * fy + az3 * fz
+        hi = g1 if g1 > g2 else g2
+        hi = hi if hi > g3 else g3
+        lo = g1 if g1 < g2 else g2
+        lo = lo if lo < g3 else g3
+        spread = hi - lo
+        if spread <= self.v_span:
+            scale = 1.0
+        elif self.v_span < spread < math.inf:
+            scale = self.v_span / spread
+        else:                                   # NaN (invalid demand) or overflow
+            scale = 0.0
+            g1 = g2 = g3 = hi = lo = 0.0
+        centre = self.v_mid - scale * 0.5 * (hi + lo)
+        v_min, v_max = self.v_min, self.v_max
+        for k, g in ((0, g1), (1, g2), (2, g3)):
+            v = centre + scale * g
+            voltages[first + k] = v_min if v < v_min else (v_max if v > v_max else v)
+        return scale
+
+    def allocate(self, u: np.ndarray, voltages: np.ndarray) -> None:
+        """Six voltages (a1, a2, a3, b1, b2, b3) for the forces ``u`` (N)."""
+        fya, fza, fyb, fzb = u.tolist()
+        self.scale_a = self._support(fya, fza, self._coef[0], voltages, 0)
+        self.scale_b = self._support(fyb, fzb, self._coef[1], voltages, 3)
+
+    def forces(self, voltages: np.ndarray) -> np.ndarray:
+        """The lateral forces (Fay,A, Faz,A, Fay,B, Faz,B) that ``voltages`` produce."""
+        f = self.force_constant * (np.asarray(voltages, dtype=float).reshape(2, STACKS) - self.bias)
+        lateral = np.einsum("si,sid->sd", f, self.axes)
+        return lateral.reshape(4)

@@ -1,0 +1,192 @@
+"""The fixed-rate loop: read -> step -> write -> telemetry, with per-stage timing.
+
+Pacing:
+- ``timer``: absolute deadlines t0 + k T on the monotonic clock; sleep until ``spin_time``
+  before the deadline, then spin. After an overrun the loop skips ahead to the next deadline
+  in the future and counts the missed periods (as ros2_control does), never running a burst
+  of catch-up cycles. A streak of overruns is a fault.
+- ``sample``: one step per new sample from the HAL, so a DAQ streaming at its own clock (or
+  a simulated plant in simulated time) sets the rate.
+
+SIGINT and SIGTERM ask for a stop: the voltages ramp to bias, telemetry is flushed, and
+``run`` returns normally (the caller exits 0).
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from hal.base import HalBase, HalError, HalStaleData
+from rt import realtime
+from rt.controller import I_STEP_US, Controller
+from rt.safety import Fault, State
+from rt.telemetry import TelemetryWriter
+from rt.timing import LoopTiming
+
+
+@dataclass
+class RunResult:
+    state: str
+    fault: str
+    reason: str
+    cycles: int
+    stop_requested_by: str
+    timing: dict
+    telemetry: dict = field(default_factory=dict)
+    realtime: dict = field(default_factory=dict)
+    hal: dict = field(default_factory=dict)
+
+
+class ControlLoop:
+    """Runs a controller against a HAL until stopped, faulted (if ``stop_on_fault``), or a
+    cycle/time limit is reached (then it stops like on SIGTERM)."""
+
+    def __init__(self, controller: Controller, hal: HalBase, *, pacing: str | None = None,
+                 telemetry: TelemetryWriter | None = None, max_cycles: int | None = None,
+                 stop_on_fault: bool = True, spin_time: float = 2e-4,
+                 clock: Callable[[], float] = time.perf_counter,
+                 on_cycle: Callable[[ControlLoop], None] | None = None) -> None:
+        self.controller = controller
+        self.hal = hal
+        self.pacing = pacing or controller.config.pacing
+        if self.pacing not in ("timer", "sample"):
+            raise ValueError(f"pacing must be 'timer' or 'sample', got {self.pacing!r}")
+        self.telemetry = telemetry
+        self.max_cycles = max_cycles
+        self.stop_on_fault = stop_on_fault
+        self.spin_time = spin_time
+        self.clock = clock
+        self.on_cycle = on_cycle
+        self.timing = LoopTiming()
+        self.period = controller.period
+        self.cycles = 0
+        self._stop_signal = ""
+        self._overrun_limit = controller.config.safety.overrun_streak
+
+    # -- stopping ---------------------------------------------------------------------------------
+    def request_stop(self, why: str = "request") -> None:
+        """Thread- and signal-safe: the loop ramps to bias and ends."""
+        if not self._stop_signal:
+            self._stop_signal = why
+
+    def _on_signal(self, signum, _frame) -> None:
+        self.request_stop(signal.Signals(signum).name)
+
+    # -- the loop ---------------------------------------------------------------------------------
+    def run(self, require_rt: bool = False, acquire_rt: bool = True) -> RunResult:
+        installed = {}
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                installed[sig] = signal.signal(sig, self._on_signal)
+        rt_report = {}
+        try:
+            if acquire_rt:
+                rt_report = realtime.acquire(self.controller.config.realtime, require_rt)
+            self._arm()
+            self._cycle_until_done()
+        finally:
+            if acquire_rt:
+                realtime.release()
+            for sig, previous in installed.items():
+                signal.signal(sig, previous)
+            if self.telemetry is not None:
+                self.telemetry.close()
+        c = self.controller
+        tel = {}
+        if self.telemetry is not None:
+            tel = {"path": str(self.telemetry.path), "written": self.telemetry.written,
+                   "dropped": self.telemetry.dropped}
+        return RunResult(state=c.state.name, fault=c.supervisor.fault.name, reason=c.supervisor.reason(),
+                         cycles=self.cycles, stop_requested_by=self._stop_signal,
+                         timing=self.timing.summary(), telemetry=tel, realtime=rt_report,
+                         hal=self.hal.status())
+
+    def _arm(self) -> None:
+        c = self.controller
+        try:
+            first = self.hal.read(timeout=max(1.0, 20 * self.period))
+        except HalError as exc:
+            c.arm(None)
+            c.fault(Fault.HAL_ERROR, f"no first sample: {exc}")
+            return
+        c.arm(first)
+        c.start()
+
+    def _finished(self) -> bool:
+        c = self.controller
+        state = c.state
+        if state == State.STOPPED:
+            return True
+        if state == State.FAULT and self.stop_on_fault and c.at_bias:
+            return True
+        return False
+
+    def _cycle_until_done(self) -> None:
+        c, hal, timing, clock = self.controller, self.hal, self.timing, self.clock
+        tel = self.telemetry
+        period = self.period
+        timer = self.pacing == "timer"
+        read_timeout = 0.5 * period if timer else 1.5 * period
+        record = c.record
+        next_deadline = clock() + period
+        previous_start = None
+        while True:
+            if self._stop_signal and c.state not in (State.STOPPING, State.STOPPED):
+                c.request_stop()
+            if self.max_cycles is not None and self.cycles >= self.max_cycles:
+                self.request_stop("cycle limit")
+            t0 = clock()
+            if previous_start is not None:
+                timing.cycle.record(t0 - previous_start)   # start to start
+            previous_start = t0
+            try:
+                sample = hal.read(timeout=read_timeout)
+            except HalStaleData:
+                sample = None
+            except HalError as exc:
+                sample = None
+                c.fault(Fault.HAL_ERROR, str(exc))
+            t1 = clock()
+            voltages = c.step(sample)
+            t2 = clock()
+            try:
+                hal.write(voltages)
+            except HalError as exc:
+                c.fault(Fault.HAL_ERROR, f"write: {exc}")
+            t3 = clock()
+            record[I_STEP_US] = (t2 - t1) * 1e6
+            if tel is not None:
+                tel.push(record)
+            timing.read.record(t1 - t0)
+            timing.compute.record(t2 - t1)
+            timing.write.record(t3 - t2)
+            self.cycles += 1
+            if self.on_cycle is not None:
+                self.on_cycle(self)
+            if self._finished():
+                return
+            if not timer:
+                continue
+            now = clock()
+            if now > next_deadline:
+                # overrun: skip to the first deadline still ahead, count what was missed
+                timing.overruns += 1
+                timing.overrun_streak += 1
+                timing.max_overrun_streak = max(timing.max_overrun_streak, timing.overrun_streak)
+                missed = int((now - next_deadline) / period) + 1
+                timing.missed_periods += missed
+                next_deadline += missed * period
+                if timing.overrun_streak >= self._overrun_limit:
+                    c.fault(Fault.OVERRUN_STREAK, f"{timing.overrun_streak} overruns in a row")
+            else:
+                timing.overrun_streak = 0
+            remaining = next_deadline - self.spin_time - clock()
+            if remaining > 0:
+                time.sleep(remaining)
+            while clock() < next_deadline:
+                pass
+            next_deadline += period

@@ -1,0 +1,153 @@
+"""Telemetry: every sample's record into a preallocated ring buffer, drained to disk by a
+writer thread.
+
+The loop never waits for the disk: ``push`` copies one row into the ring (into a row view
+made before the loop) or, if the writer has fallen a whole buffer behind, drops the record
+and counts it. The writer appends whole rows and flushes at least every ``flush_interval``
+(<= 0.5 s), so after a ``kill -9`` the file holds everything up to the last flush.
+
+File format (``.btl``): the line ``BEAMCTL-TELEMETRY 1``, an 8-byte little-endian length,
+a JSON header (columns, sample rate, run metadata), then rows of little-endian float64.
+A reader ignores an incomplete last row.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+MAGIC = b"BEAMCTL-TELEMETRY 1\n"
+
+
+class TelemetryError(ValueError):
+    """A telemetry file could not be read."""
+
+
+class TelemetryWriter:
+    """Ring buffer plus writer thread. Use ``start()``, ``push(record)`` per sample, ``close()``."""
+
+    def __init__(self, path: str | Path, columns: list[str], capacity: int,
+                 flush_interval: float = 0.25, meta: dict | None = None) -> None:
+        self.path = Path(path)
+        self.columns = list(columns)
+        self.capacity = int(capacity)
+        self.flush_interval = float(flush_interval)
+        self._ring = np.zeros((self.capacity, len(columns)))
+        self._rows = [self._ring[i] for i in range(self.capacity)]   # views made once
+        self._head = 0        # records pushed (loop thread only)
+        self._tail = 0        # records written (writer thread only)
+        self.dropped = 0
+        self.written = 0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        header = json.dumps({"columns": self.columns, "meta": meta or {}}).encode()
+        self._file = open(self.path, "wb")  # noqa: SIM115 (closed in close())
+        self._file.write(MAGIC + struct.pack("<Q", len(header)) + header)
+        self._file.flush()
+
+    def start(self) -> TelemetryWriter:
+        self._thread = threading.Thread(target=self._run, name="telemetry-writer", daemon=True)
+        self._thread.start()
+        return self
+
+    def push(self, record: np.ndarray) -> None:
+        """Copy one record into the ring; drop it (counted) if the ring is full."""
+        head = self._head
+        if head - self._tail >= self.capacity:
+            self.dropped += 1
+            return
+        np.copyto(self._rows[head % self.capacity], record)
+        self._head = head + 1
+
+    def _drain(self) -> None:
+        head, tail = self._head, self._tail
+        if head == tail:
+            return
+        start, end = tail % self.capacity, head % self.capacity
+        if start < end:
+            chunks = [self._ring[start:end]]
+        else:
+            chunks = [self._ring[start:], self._ring[:end]]
+        for chunk in chunks:
+            self._file.write(chunk.astype("<f8", copy=False).tobytes())
+        self._tail = head
+        self.written = head
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self._drain()
+            self._file.flush()
+            self._stop.wait(self.flush_interval)
+
+    def close(self) -> None:
+        """Write everything pushed so far and close the file."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        if not self._file.closed:
+            self._drain()
+            self._file.flush()
+            self._file.close()
+
+    def __enter__(self) -> TelemetryWriter:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def read_telemetry(path: str | Path) -> tuple[dict, np.ndarray]:
+    """(header, data [n x columns]) of a telemetry file; an incomplete last row is ignored."""
+    p = Path(path)
+    try:
+        raw = p.read_bytes()
+    except OSError as exc:
+        raise TelemetryError(f"{p}: cannot read ({exc.strerror or exc})") from None
+    if not raw.startswith(MAGIC) or len(raw) < len(MAGIC) + 8:
+        raise TelemetryError(f"{p}: not a beamctl telemetry file (no {MAGIC.strip().decode()!r} header)")
+    (length,) = struct.unpack("<Q", raw[len(MAGIC):len(MAGIC) + 8])
+    body = len(MAGIC) + 8
+    try:
+        header = json.loads(raw[body:body + length])
+        columns = header["columns"]
+    except (ValueError, KeyError, TypeError):
+        raise TelemetryError(f"{p}: damaged header") from None
+    data = raw[body + length:]
+    row_bytes = 8 * len(columns)
+    n = len(data) // row_bytes
+    rows = np.frombuffer(data[:n * row_bytes], dtype="<f8").reshape(n, len(columns))
+    return header, rows.astype(float)
+
+
+def export(path: str | Path, out: str | Path, fmt: str) -> Path:
+    """Convert a telemetry file to MATLAB ``mat`` (one variable per column plus ``columns``
+    and ``meta``) or ``csv`` (a header row of column names)."""
+    header, rows = read_telemetry(path)
+    out = Path(out)
+    if fmt == "mat":
+        import scipy.io
+
+        variables = {name: rows[:, i] for i, name in enumerate(header["columns"])}
+        variables["columns"] = np.array(header["columns"], dtype=object)
+        variables["meta_json"] = json.dumps(header.get("meta", {}))
+        scipy.io.savemat(out, variables, do_compression=True)
+    elif fmt == "csv":
+        np.savetxt(out, rows, delimiter=",", header=",".join(header["columns"]), comments="",
+                   fmt="%.10g")
+    else:
+        raise TelemetryError(f"unknown export format {fmt!r}: expected 'mat' or 'csv'")
+    return out
+
+
+def wait_written(writer: TelemetryWriter, count: int, timeout: float = 5.0) -> bool:
+    """Wait until ``count`` records are on disk (tests and reports)."""
+    end = time.monotonic() + timeout
+    while writer.written < count and time.monotonic() < end:
+        time.sleep(0.01)
+    return writer.written >= count

@@ -1,0 +1,204 @@
+"""The control step: equations, anti-windup, bumpless start, fault ramps, no allocation."""
+
+import sys
+import tracemalloc
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import scipy.signal
+
+from gains.defaults import default_table_path
+from gains.table import load_table
+from hal.base import Sample
+from rt.config import controller_config
+from rt.controller import FLAG_INTEGRATOR_HELD, Controller
+from rt.safety import Fault, State, TransitionError
+
+
+@pytest.fixture(scope="module")
+def table():
+    return load_table(default_table_path())
+
+
+def _sample(strains=(0.0, 0.0, 0.0, 0.0), load=1000.0):
+    s = Sample()
+    s.strains[:] = strains
+    s.axial_load = load
+    return s
+
+
+def _running(table, **overrides):
+    c = Controller(table, controller_config(overrides))
+    first = _sample()
+    c.arm(first)
+    c.start()
+    return c
+
+
+def test_step_computes_q_velocity_integral_and_u_as_specified(table):
+    """q = (C0 Phi)^-1 y, qdot = omega_c x Butterworth high-pass of q (scipy.signal.lfilter
+    as reference), xi = sum T q, u = -K(Fx) [q, qdot, xi] with K interpolated at the
+    filtered load."""
+    c = _running(table, start_ramp_time=0.0)
+    rng = np.random.default_rng(3)
+    ys = 2e-6 * rng.standard_normal((300, 4))
+    loads = 1234.0 + 3.0 * rng.standard_normal(300)
+    qs, qdots, xis = [], [], []
+    for y, load in zip(ys, loads, strict=True):
+        c.step(_sample(y, load))
+        qs.append(c.q.copy())
+        qdots.append(c.qdot.copy())
+        xis.append(c.xi.copy())
+    q_ref = ys @ table.c0_phi_inv.T
+    np.testing.assert_allclose(qs, q_ref, rtol=1e-12)
+    filt = c.filter
+    hp = scipy.signal.lfilter([filt.b0, filt.b1], [1.0, filt.a1], np.vstack([np.zeros((1, 4)), q_ref]),
+                              axis=0, zi=-filt.b0 * np.zeros((1, 4)))[0]
+    # the controller starts its filter at rest on the first sample (all zero here)
+    np.testing.assert_allclose(qdots, filt.scale * hp[1:], rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(xis, np.cumsum(q_ref, axis=0) * c.period, rtol=1e-9, atol=1e-20)
+    k = c.schedule.gain_at(c.schedule.filtered_load_n)
+    assert 1200 < c.schedule.filtered_load_n < 1250 and c.schedule.offset_n != 0
+    np.testing.assert_allclose(c.u, -k @ c.x, rtol=1e-12)
+
+
+def test_velocity_estimate_starts_without_a_kick(table):
+    """Bumpless: a beam already deflected when the controller starts shows no velocity."""
+    c = Controller(table, controller_config())
+    s = _sample((3e-5, -1e-5, 2e-5, 4e-6))
+    c.arm(s)
+    c.start()
+    c.step(s)
+    assert np.abs(c.qdot).max() < 1e-12
+    assert np.all(c.xi == c.q * c.period)
+
+
+def test_start_fades_the_voltages_in_from_bias(table):
+    c = Controller(table, controller_config({"start_ramp_time": 0.1}))
+    s = _sample((2e-5, 2e-5, 1e-5, 1e-5))
+    c.arm(s)
+    np.testing.assert_array_equal(c.voltages, 75.0)
+    c.start()
+    steps = []
+    for _ in range(400):
+        steps.append(c.step(s).copy())
+    steps = np.array(steps)
+    jumps = np.abs(np.diff(np.vstack([np.full(6, 75.0), steps]), axis=0)).max()
+    assert jumps < 1.0, f"largest voltage change per sample during start {jumps:.3f} V"
+    assert np.abs(steps[0] - 75.0).max() < 0.05
+
+
+def test_anti_windup_stops_the_integrator_winding_into_saturation(table):
+    """A large constant deflection saturates the stacks; with anti-windup the integral stops
+    growing, without it keeps winding (the paper's beam buckled once 150 V was hit)."""
+    results = {}
+    for enabled in (True, False):
+        c = _running(table, anti_windup=enabled, start_ramp_time=0.0,
+                     safety={"saturation_time": 10.0})
+        s = _sample((4e-4, 0.0, 4e-4, 0.0), 3000.0)
+        while c.allocator.scale_a == 1.0:
+            c.step(s)
+        at_saturation = c.xi[0]
+        held = 0
+        for _ in range(2000):
+            c.step(s)
+            held += bool(int(c.record[4]) & FLAG_INTEGRATOR_HELD)
+        assert c.allocator.scale_a < 1.0, "the demand must stay saturated for this test"
+        results[enabled] = (abs(c.xi[0] - at_saturation), held)
+    (growth_on, held_on), (growth_off, held_off) = results[True], results[False]
+    assert held_on == 2000 and held_off == 0
+    assert growth_on < 1e-3 * growth_off, (
+        f"integral grew by {growth_on:.3g} with anti-windup, {growth_off:.3g} without")
+
+
+@pytest.mark.parametrize(("strains", "load", "fault"), [
+    ((np.nan, 0, 0, 0), 1000.0, Fault.STRAIN_NOT_FINITE),
+    ((0, 0, 5e-3, 0), 1000.0, Fault.STRAIN_OUT_OF_RANGE),
+    ((0, 0, 0, 0), np.inf, Fault.LOAD_NOT_FINITE),
+    ((0, 0, 0, 0), 6000.0, Fault.LOAD_OUT_OF_SENSOR_RANGE),
+])
+def test_bad_input_faults_and_ramps_to_bias_without_a_jump(table, strains, load, fault):
+    c = _running(table, start_ramp_time=0.0, safety={"ramp_time": 0.1})
+    deflected = _sample((1e-4, -5e-5, 5e-5, 2e-5), 1500.0)
+    for _ in range(300):
+        c.step(deflected)
+    before = c.voltages.copy()
+    assert np.abs(before - 75.0).max() > 1.0, "voltages away from bias before the fault"
+    out = [c.step(_sample(strains, load)).copy()]
+    for _ in range(400):
+        out.append(c.step(deflected).copy())
+    out = np.array(out)
+    assert c.state == State.FAULT and c.supervisor.fault == fault, c.supervisor.reason()
+    ramp_samples = 0.1 * c.sample_rate_hz
+    largest = np.abs(np.diff(np.vstack([before, out]), axis=0)).max()
+    bound = np.abs(before - 75.0).max() / ramp_samples
+    assert largest <= bound * (1 + 1e-9), f"voltage jumped by {largest:.3f} V (ramp step {bound:.3f} V)"
+    np.testing.assert_array_equal(out[-1], 75.0)
+    assert np.all((out >= 0.0) & (out <= 150.0))
+
+
+def test_a_fault_is_latched_until_an_operator_rearms(table):
+    c = _running(table)
+    c.step(_sample((np.nan, 0, 0, 0)))
+    c.fault(Fault.HAL_ERROR, "second fault")
+    assert c.supervisor.fault == Fault.STRAIN_NOT_FINITE, "the first reason stays"
+    for _ in range(2000):
+        c.step(_sample())
+    assert c.state == State.FAULT
+    with pytest.raises(TransitionError):
+        c.start()
+    c.rearm(_sample())
+    assert c.state == State.ARMED and np.all(c.xi == 0)
+    c.start()
+    c.step(_sample())
+    assert c.state == State.RUNNING
+
+
+def test_load_beyond_the_paper_table_faults(table):
+    paper = replace(table, loads_n=table.loads_n[:71], gains=table.gains[:71],
+                    schedule=replace(table.schedule, mode="paper"))
+    c = Controller(paper, controller_config())
+    c.arm(_sample(load=3400.0))
+    c.start()
+    for _ in range(2500):
+        c.step(_sample(load=3700.0))
+    assert c.supervisor.fault == Fault.LOAD_OUT_OF_TABLE_RANGE
+
+
+def test_the_step_allocates_no_arrays_and_calls_no_scipy(table):
+    c = _running(table)
+    rng = np.random.default_rng(0)
+    samples = [_sample(1e-6 * rng.standard_normal(4), 1000.0 + 500 * k / 50) for k in range(50)]
+    for s in samples:
+        c.step(s)
+    calls = set()
+
+    def profile(frame, event, arg):
+        if event == "c_call":
+            calls.add(getattr(arg, "__module__", None) or type(arg).__name__)
+        elif event == "call":
+            calls.add(frame.f_globals.get("__name__"))
+
+    sys.setprofile(profile)
+    try:
+        for s in samples:
+            c.step(s)
+    finally:
+        sys.setprofile(None)
+    assert not [m for m in calls if m and m.startswith("scipy")], calls
+    tracemalloc.start()
+    try:
+        many = samples * 20
+        for s in many:
+            c.step(s)
+        tracemalloc.reset_peak()
+        base, _ = tracemalloc.get_traced_memory()
+        for s in many:
+            c.step(s)
+        current, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    # a few Python ints (the step counters) are replaced each step; nothing may accumulate
+    assert current - base < 256, f"{current - base} bytes kept by 1000 more steps: a leak"
+    assert peak - base < 300, f"{peak - base} bytes peak: a step allocated an array"

@@ -1,0 +1,189 @@
+"""The loop against a scripted HAL: every way a run ends is a safe state with its reason."""
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from gains.defaults import default_table_path
+from gains.table import load_table
+from hal.base import HalConnectionLost
+from rt.config import controller_config
+from rt.controller import COL, RECORD_COLUMNS, Controller
+from rt.loop import ControlLoop
+from rt.safety import Fault, State
+from rt.telemetry import TelemetryWriter, read_telemetry
+from tests.rt.fakes import ScriptedHal
+
+DEFLECTED = ((8e-5, -4e-5, 3e-5, 1e-5), 1500.0)
+RAMP_TIME = 0.05
+
+
+def oscillating(sequence: int):
+    """A beam vibrating about straight at 20 Hz (the controller drives the stacks without
+    winding its integrator into saturation)."""
+    a = 3e-5 * np.sin(2 * np.pi * 20.0 * sequence / 2500.0)
+    return (a, -a, 0.5 * a, 0.2 * a), 1500.0
+
+
+@pytest.fixture(scope="module")
+def table():
+    return load_table(default_table_path())
+
+
+def _loop(table, script, pacing="sample", write_delay=0.0, fail_write_after=None,
+          default=DEFLECTED, max_cycles=None, **cfg):
+    config = controller_config({"start_ramp_time": 0.0, "pacing": pacing,
+                                "safety": {"ramp_time": RAMP_TIME, **cfg.pop("safety", {})}, **cfg})
+    controller = Controller(table, config)
+    hal = ScriptedHal(table.design.sample_rate_hz, script, default=default,
+                      write_delay=write_delay, fail_write_after=fail_write_after)
+    hal.open()
+    return ControlLoop(controller, hal, max_cycles=max_cycles), hal
+
+
+def _assert_safe_ramp(hal, was_driving: bool = True):
+    """Voltages always in range; the last RAMP_TIME before reaching bias is a linear ramp
+    with no step larger than (start - bias) / ramp samples; the run ends at bias."""
+    v = np.array(hal.written)
+    assert np.all((v >= 0.0) & (v <= 150.0)), "a voltage left [0, 150] V"
+    np.testing.assert_array_equal(v[-1], 75.0)
+    at_bias = np.all(v == 75.0, axis=1)
+    end = len(v) - 1
+    while end > 0 and at_bias[end - 1]:
+        end -= 1
+    n = round(RAMP_TIME * 2500.0)
+    ramp = v[max(end - n, 0):end + 1]
+    step = np.abs(np.diff(ramp, axis=0)).max()
+    bound = np.abs(ramp[0] - 75.0).max() / n
+    assert step <= bound * (1 + 1e-9) + 1e-12, f"jump of {step:.4f} V during the ramp (bound {bound:.4f})"
+    if was_driving:
+        before = np.abs(v[:max(end - n, 1)] - 75.0).max()
+        assert before > 0.2, f"the controller was driving the stacks before the stop ({before:.3f} V)"
+
+
+def _run(loop, require_rt=False):
+    return loop.run(require_rt=require_rt, acquire_rt=False)
+
+
+@pytest.mark.parametrize(("event", "fault"), [
+    ([None] * 5, Fault.STALE_INPUT),
+    ([((np.nan, 0.0, 0.0, 0.0), 1500.0)], Fault.STRAIN_NOT_FINITE),
+    ([HalConnectionLost("bus-off")], Fault.HAL_ERROR),
+])
+def test_fault_ends_in_the_safe_state_with_its_reason(table, event, fault):
+    script = [DEFLECTED] * 400 + event
+    loop, hal = _loop(table, script)
+    result = _run(loop)
+    assert result.state == "FAULT" and result.fault == fault.name, result.reason
+    _assert_safe_ramp(hal)
+    assert np.abs(np.array(hal.written[399]) - 75.0).max() > 1.0, "was controlling before the fault"
+
+
+def test_load_beyond_the_table_faults(table):
+    script = [DEFLECTED] * 300 + [((0.0, 0.0, 0.0, 0.0), 4600.0)] * 3000
+    loop, hal = _loop(table, script)
+    result = _run(loop)
+    assert result.fault == Fault.LOAD_OUT_OF_TABLE_RANGE.name, result.reason
+    _assert_safe_ramp(hal)
+
+
+def test_overrun_streak_faults_in_timer_pacing(table):
+    """Each write takes 1 ms against a 0.4 ms period: a streak of overruns, skipped ahead,
+    never a burst of catch-up cycles."""
+    loop, hal = _loop(table, [], pacing="timer", write_delay=1e-3, safety={"overrun_streak": 10})
+    start = time.perf_counter()
+    result = _run(loop)
+    elapsed = time.perf_counter() - start
+    assert result.fault == Fault.OVERRUN_STREAK.name, result.reason
+    t = result.timing
+    assert t["overruns"] >= 10 and t["max_overrun_streak"] >= 10
+    assert t["missed_periods"] >= t["overruns"], "skipped periods are counted"
+    assert loop.cycles < elapsed / 1e-3 + 5, "no catch-up burst: at most one cycle per write time"
+    _assert_safe_ramp(hal, was_driving=False)
+
+
+def test_sigterm_ramps_to_bias_and_stops(table):
+    loop, hal = _loop(table, [], pacing="timer", default=oscillating)
+    timer = threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGTERM))
+    previous = signal.signal(signal.SIGTERM, lambda *_: None)  # never let it reach pytest
+    try:
+        timer.start()
+        result = _run(loop)
+    finally:
+        timer.cancel()
+        signal.signal(signal.SIGTERM, previous)
+    assert result.state == "STOPPED" and result.stop_requested_by == "SIGTERM"
+    assert result.fault == "NONE"
+    _assert_safe_ramp(hal)
+
+
+def test_write_failure_faults(table):
+    loop, hal = _loop(table, [], fail_write_after=300, default=oscillating)
+    result = _run(loop)
+    assert result.fault == Fault.HAL_ERROR.name and "amplifier link lost" in result.reason
+
+
+def test_timer_pacing_holds_the_period(table):
+    loop, hal = _loop(table, [], pacing="timer", max_cycles=1000, default=oscillating)
+    result = _run(loop)
+    assert result.state == "STOPPED"
+    cycle = result.timing["cycle"]
+    assert cycle["p50_us"] == pytest.approx(400.0, rel=0.03), cycle
+    for stage in ("read", "compute", "write", "cycle"):
+        assert result.timing[stage]["count"] > 900 and result.timing[stage]["max_us"] > 0
+
+
+def test_telemetry_records_every_cycle(tmp_path, table):
+    loop, hal = _loop(table, [], max_cycles=500, default=oscillating)
+    loop.telemetry = TelemetryWriter(tmp_path / "run.btl", RECORD_COLUMNS, capacity=4096,
+                                     meta={"test": True}).start()
+    result = _run(loop)
+    header, rows = read_telemetry(tmp_path / "run.btl")
+    assert header["columns"] == RECORD_COLUMNS and header["meta"] == {"test": True}
+    assert len(rows) == loop.cycles == result.telemetry["written"] and result.telemetry["dropped"] == 0
+    np.testing.assert_array_equal(rows[:, COL["sequence"]], np.arange(2, 2 + len(rows)))
+    np.testing.assert_array_equal(rows[-1, COL["voltage_a1_V"]:COL["voltage_a1_V"] + 6], 75.0)
+    assert rows[-1, COL["state"]] == State.STOPPED
+
+
+def test_a_full_ring_drops_records_and_counts_them(tmp_path):
+    w = TelemetryWriter(tmp_path / "t.btl", ["a", "b"], capacity=8)  # writer thread not started
+    for i in range(20):
+        w.push(np.array([i, -i], dtype=float))
+    assert w.dropped == 12
+    w.close()
+    _, rows = read_telemetry(tmp_path / "t.btl")
+    np.testing.assert_array_equal(rows[:, 0], np.arange(8))
+
+
+def test_telemetry_survives_kill_9_up_to_the_last_flush(tmp_path):
+    path = tmp_path / "killed.btl"
+    script = textwrap.dedent(f"""
+        import time, numpy as np
+        from rt.telemetry import TelemetryWriter
+        w = TelemetryWriter({str(path)!r}, ["t", "x"], capacity=100000, flush_interval=0.25).start()
+        start = time.monotonic()
+        print("started", flush=True)
+        while True:
+            t = time.monotonic() - start
+            w.push(np.array([t, 2 * t]))
+            time.sleep(0.0004)
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True,
+                            cwd=os.path.dirname(os.path.dirname(os.path.dirname(__file__))))
+    assert proc.stdout.readline().strip() == "started"
+    time.sleep(1.5)
+    killed_at = 1.5
+    proc.kill()
+    proc.wait()
+    _, rows = read_telemetry(path)
+    assert len(rows) > 100
+    assert rows[-1, 0] > killed_at - 0.5 - 0.2, f"last record {rows[-1, 0]:.2f} s, killed at ~{killed_at} s"
+    np.testing.assert_array_equal(rows[:, 1], 2 * rows[:, 0])
