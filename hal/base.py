@@ -133,6 +133,10 @@ class HalBase(abc.ABC):
         self._write(voltages)
         self.writes += 1
 
+    def publish_status(self, state: int, fault: int, flags: int = 0) -> None:
+        """The controller's safety state, latched fault and flags, for backends that report
+        them to the hardware (the CAN heartbeat); others ignore it."""
+
     def status(self) -> dict:
         """Counters for reports (backends add their own)."""
         return {"backend": self.name, "reads": self.reads, "writes": self.writes}

@@ -17,9 +17,14 @@ import math
 
 import numpy as np
 
+from models.actuators import STACKS, StackGeometry
 from rt.config import Actuators
 
-STACKS = 3
+
+def geometry(actuators: Actuators) -> StackGeometry:
+    """The stack geometry the controller believes in."""
+    return StackGeometry(force_constant=actuators.force_constant, bias_voltage=actuators.bias_voltage,
+                         orientation_deg=tuple(actuators.orientation_deg))
 
 
 class Allocator:
@@ -46,9 +51,7 @@ class Allocator:
                 row.append((2.0 / 3.0 * math.cos(t) / self.force_constant,
                             2.0 / 3.0 * math.sin(t) / self.force_constant))
             self._coef.append(tuple(row))
-        self.axes = np.array([[[math.cos(math.radians(t1 + 120.0 * i)),
-                                math.sin(math.radians(t1 + 120.0 * i))] for i in range(STACKS)]
-                              for t1 in actuators.orientation_deg])
+        self.geometry = geometry(actuators)
         self.scale_a = 1.0
         self.scale_b = 1.0
 
@@ -86,6 +89,4 @@ class Allocator:
 
     def forces(self, voltages: np.ndarray) -> np.ndarray:
         """The lateral forces (Fay,A, Faz,A, Fay,B, Faz,B) that ``voltages`` produce."""
-        f = self.force_constant * (np.asarray(voltages, dtype=float).reshape(2, STACKS) - self.bias)
-        lateral = np.einsum("si,sid->sd", f, self.axes)
-        return lateral.reshape(4)
+        return self.geometry.forces(voltages)

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 from hal.base import HalBase, HalError, HalStaleData
 from rt import realtime
-from rt.controller import I_STEP_US, Controller
+from rt.controller import I_FAULT, I_FLAGS, I_STATE, I_STEP_US, Controller
 from rt.safety import Fault, State
 from rt.telemetry import TelemetryWriter
 from rt.timing import LoopTiming
@@ -154,6 +154,7 @@ class ControlLoop:
             voltages = c.step(sample)
             t2 = clock()
             try:
+                hal.publish_status(record[I_STATE], record[I_FAULT], int(record[I_FLAGS]))
                 hal.write(voltages)
             except HalError as exc:
                 c.fault(Fault.HAL_ERROR, f"write: {exc}")

@@ -1,0 +1,68 @@
+"""Test rigs: the sim backend, and the CAN backend talking to the plant emulator over
+python-can's virtual bus (each rig on its own channel)."""
+
+from __future__ import annotations
+
+import itertools
+
+import can
+
+from gains.defaults import default_table_path
+from gains.table import load_table
+from hal.can_backend import CanBackend
+from hal.emulator import CanPlantEmulator
+from hal.sim import SimBackend
+from models import build_model
+from models.plant import Plant, plant_config
+from rt.allocation import geometry
+from rt.config import controller_config
+
+_channels = itertools.count()
+TABLE = load_table(default_table_path())
+MODEL = build_model(TABLE.model_parameters)
+GEOMETRY = geometry(controller_config().actuators)
+
+
+def make_plant(**overrides) -> Plant:
+    settings = {"sample_rate": TABLE.design.sample_rate_hz, "load": {"start": 1500.0, "end": 1500.0},
+                "bow": {"amplitude": 5e-5, "angle_deg": 234.0}, "noise": {"strain": 2e-7, "load": 1.0}}
+    settings.update(overrides)
+    return Plant(MODEL, plant_config(settings))
+
+
+class SimRig:
+    name = "sim"
+
+    def __init__(self, **plant_overrides) -> None:
+        self.plant = make_plant(**plant_overrides)
+        self.hal = SimBackend(self.plant, GEOMETRY)
+
+    def silence(self) -> None:
+        self.hal.go_silent()
+
+    def close(self) -> None:
+        self.hal.close()
+
+
+class CanRig:
+    name = "can"
+
+    def __init__(self, pace: str = "lockstep", latency_samples: int = 0, **plant_overrides) -> None:
+        channel = f"beamctl-test-{next(_channels)}"
+        self.plant = make_plant(**plant_overrides)
+        self.emulator_bus = can.Bus(interface="virtual", channel=channel)
+        self.emulator = CanPlantEmulator(self.emulator_bus, self.plant, GEOMETRY, pace=pace,
+                                         latency_samples=latency_samples)
+        self.hal = CanBackend(TABLE.design.sample_rate_hz, "virtual", channel)
+        self.emulator.start()
+
+    def silence(self) -> None:
+        self.emulator.stop()
+
+    def close(self) -> None:
+        self.emulator.stop()
+        self.hal.close()
+        self.emulator_bus.shutdown()
+
+
+RIGS = {"sim": SimRig, "can": CanRig}
