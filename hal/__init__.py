@@ -29,7 +29,8 @@ def backend_class(name: str) -> type[HalBase]:
     try:
         module_name, class_name = BACKENDS[name]
     except KeyError:
-        raise HalConfigurationError(f"unknown HAL backend {name!r}: expected one of {sorted(BACKENDS)}") from None
+        raise HalConfigurationError(
+            f"unknown HAL backend {name!r}: expected one of {sorted(BACKENDS)}") from None
     return getattr(importlib.import_module(module_name), class_name)
 
 

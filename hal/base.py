@@ -79,6 +79,7 @@ class HalBase(abc.ABC):
         self.reads = 0
         self.writes = 0
         self._sample = Sample()
+        self.state_code = self.fault_code = self.flags_code = 0
 
     # -- hooks for backends --------------------------------------------------------------------
     @abc.abstractmethod
@@ -135,7 +136,8 @@ class HalBase(abc.ABC):
 
     def publish_status(self, state: int, fault: int, flags: int = 0) -> None:
         """The controller's safety state, latched fault and flags, for backends that report
-        them to the hardware (the CAN heartbeat); others ignore it."""
+        them to the hardware (the CAN heartbeat); the base only keeps them for ``status()``."""
+        self.state_code, self.fault_code, self.flags_code = int(state), int(fault), int(flags) & 0xFF
 
     def status(self) -> dict:
         """Counters for reports (backends add their own)."""

@@ -27,7 +27,8 @@ def classic_frame_bits(data_bytes: int, extended: bool = False) -> int:
     return fixed + 8 * data_bytes + (stuffable - 1) // 4
 
 
-def fd_frame_time(data_bytes: int, nominal_bitrate: float, data_bitrate: float, extended: bool = False) -> float:
+def fd_frame_time(data_bytes: int, nominal_bitrate: float, data_bitrate: float,
+                  extended: bool = False) -> float:
     arbitration = (37 if extended else 17)
     nominal_bits = arbitration + (arbitration - 1) // 4 + 13
     crc = 17 if data_bytes <= 16 else 21

@@ -21,7 +21,7 @@ import numpy as np
 
 from hal.base import HalBase, HalConfigurationError, HalConnectionLost, HalProtocolError, Sample
 from hal.budget import check_budget
-from hal.dbc import Contract
+from hal.dbc import STRAIN_SIGNALS, VOLTAGE_SIGNALS, Contract
 
 CAN_ERR_BUSOFF = 0x40          # SocketCAN error class bit in an error frame's identifier
 LOAD_SILENCE_DIVISORS = 5      # load frames that may be missed before the load counts as stale
@@ -51,18 +51,14 @@ class CanBackend(HalBase):
         self._load_values = [0.0] * len(c.load.names)
         self._strain_seq_index = c.strains.index("sequence")
         self._load_index, self._load_seq_index = c.load.index("axial_load"), c.load.index("sequence")
-        self._strain_order = [c.strains.index(n) for n in ("strain_y1", "strain_z1", "strain_y2", "strain_z2")]
-        self._voltage_order = [c.voltages.index(n) for n in ("voltage_a1", "voltage_a2", "voltage_a3",
-                                                            "voltage_b1", "voltage_b2", "voltage_b3")]
+        self._strain_order = c.strains.order(STRAIN_SIGNALS)
+        self._voltage_order = c.voltages.order(VOLTAGE_SIGNALS)
         self._voltage_values = [0.0] * len(c.voltages.names)
         self._voltage_seq_index = c.voltages.index("sequence")
         self._status_values = [0] * len(c.status.names)
         self._status_index = [c.status.index(n) for n in ("state", "fault", "flags", "sequence")]
         self._status_divisor = c.status.divisor
         self._load_silence = LOAD_SILENCE_DIVISORS * c.load.divisor
-        self.state_code = 0
-        self.fault_code = 0
-        self.flags_code = 0
         self._reset_counters()
 
     def _reset_counters(self) -> None:
@@ -166,9 +162,6 @@ class CanBackend(HalBase):
                 counters["unknown_ids"] += 1
 
     # -- send ------------------------------------------------------------------------------------------
-    def publish_status(self, state: int, fault: int, flags: int = 0) -> None:
-        self.state_code, self.fault_code, self.flags_code = int(state), int(fault), int(flags) & 0xFF
-
     def _send(self, frame_id: int, data: bytes) -> None:
         msg = can.Message(arbitration_id=frame_id, data=data, is_extended_id=False, is_fd=self.fd,
                           is_rx=False)

@@ -75,6 +75,10 @@ class FrameCodec:
     def index(self, name: str) -> int:
         return self.names.index(name)
 
+    def order(self, names) -> list[int]:
+        """Positions of ``names`` among this message's signals (decided once, used per frame)."""
+        return [self.names.index(n) for n in names]
+
     def decode_into(self, data: bytes | bytearray, out: list) -> bool:
         word = int.from_bytes(data, "little")
         ok = True
@@ -90,8 +94,8 @@ class FrameCodec:
 
     def encode(self, values) -> bytes:
         word = 0
-        for (start, mask, sign, _span, scale, offset, lo, hi), value, s in zip(self._plan, values,
-                                                                              self.signals, strict=True):
+        for (start, mask, _sign, _span, scale, offset, lo, hi), value, s in zip(
+                self._plan, values, self.signals, strict=True):
             if not lo <= value <= hi:
                 raise ValueError(f"{self.name}.{s.name} = {value!r} outside the DBC range [{lo}, {hi}]")
             raw = round((value - offset) / scale)

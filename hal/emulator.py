@@ -16,7 +16,7 @@ import time
 import can
 import numpy as np
 
-from hal.dbc import Contract
+from hal.dbc import STRAIN_SIGNALS, VOLTAGE_SIGNALS, Contract
 from models.actuators import StackGeometry
 from models.plant import Plant
 
@@ -41,9 +41,8 @@ class CanPlantEmulator:
         self._bias = np.full(6, geometry.bias_voltage)
         self._decoded = [0.0] * len(self.contract.voltages.names)
         c = self.contract
-        self._voltage_order = [c.voltages.index(n) for n in ("voltage_a1", "voltage_a2", "voltage_a3",
-                                                            "voltage_b1", "voltage_b2", "voltage_b3")]
-        self._strain_order = [c.strains.index(n) for n in ("strain_y1", "strain_z1", "strain_y2", "strain_z2")]
+        self._voltage_order = c.voltages.order(VOLTAGE_SIGNALS)
+        self._strain_order = c.strains.order(STRAIN_SIGNALS)
         self._strain_values = [0.0] * len(c.strains.names)
         self._load_values = [0.0] * len(c.load.names)
         self.samples = 0

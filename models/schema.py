@@ -172,6 +172,17 @@ def boolean() -> Validator:
     return check
 
 
+def path() -> Validator:
+    """A file path as a string; the empty string means none."""
+
+    def check(value: Any) -> str:
+        if not isinstance(value, str):
+            raise _Invalid("a file path (or an empty string for none)")
+        return value
+
+    return check
+
+
 def text() -> Validator:
     """A non-empty string."""
 

@@ -52,6 +52,47 @@ def step_timing(samples: int = 50_000) -> dict:
     return percentiles_us(times)
 
 
+def can_latency(samples: int = 5000) -> dict:
+    """Sensor frame sent by the plant emulator -> voltage frame back from the controller,
+    over python-can's virtual bus (both in this process, emulator in lockstep)."""
+    import can
+
+    from hal.budget import bus_budget
+    from hal.can_backend import CanBackend
+    from hal.emulator import CanPlantEmulator
+    from models import build_model
+    from models.plant import Plant, plant_config
+    from rt.allocation import geometry
+    from rt.loop import ControlLoop
+
+    table = load_table(default_table_path())
+    config = controller_config({"pacing": "sample"})
+    plant = Plant(build_model(table.model_parameters),
+                  plant_config({"sample_rate": table.design.sample_rate_hz,
+                                "load": {"start": 2000.0, "end": 2000.0},
+                                "bow": {"amplitude": 5e-5, "angle_deg": 234.0}}))
+    channel = f"bench-{time.monotonic_ns()}"
+    emulator_bus = can.Bus(interface="virtual", channel=channel)
+    emulator = CanPlantEmulator(emulator_bus, plant, geometry(config.actuators), pace="lockstep",
+                                latency_samples=samples + 100)
+    backend = CanBackend(table.design.sample_rate_hz, "virtual", channel).open()
+    loop = ControlLoop(Controller(table, config), backend, max_cycles=samples + 50)
+    emulator.start(samples + 100)
+    try:
+        loop.run(acquire_rt=False)
+    finally:
+        emulator.stop()
+        backend.close()
+        emulator_bus.shutdown()
+    latencies = emulator.latencies[100:samples + 50]
+    latencies = latencies[np.isfinite(latencies)]
+    budget = bus_budget(backend.contract, table.design.sample_rate_hz, 1e6)
+    fd = bus_budget(backend.contract, table.design.sample_rate_hz, 1e6, True, 4e6)
+    return {**percentiles_us(latencies), "samples": int(latencies.size),
+            "bus_load_percent": 100 * budget.load, "max_rate_classic_1M_Hz": budget.max_sample_rate_hz,
+            "max_rate_fd_1M_4M_Hz": fd.max_sample_rate_hz}
+
+
 def add_parser(sub) -> None:
     p = sub.add_parser("bench", help="measure the control step and the other quoted figures")
     p.add_argument("--json", action="store_true", help="print one JSON object")
@@ -61,9 +102,19 @@ def add_parser(sub) -> None:
 
 def run(args: argparse.Namespace) -> int:
     result = {"step_us": step_timing(args.steps)}
+    lat = can_latency()
+    result["can_latency_us"] = {"p50": lat["p50"], "p99": lat["p99"]}
+    result["can"] = lat
     if args.json:
         print(json.dumps(result, indent=1))
     else:
         s = result["step_us"]
         print(f"control step: p50 {s['p50']:.2f} us, p99 {s['p99']:.2f} us ({args.steps} steps)")
-    return 0 if all(math.isfinite(v) for v in result["step_us"].values()) else 1
+        print(f"CAN sensor frame in -> voltage frame out (virtual bus): p50 {lat['p50']:.1f} us, "
+              f"p99 {lat['p99']:.1f} us ({lat['samples']} samples)")
+        print(f"bus load at {load_table(default_table_path()).design.sample_rate_hz:g} Hz: "
+              f"{lat['bus_load_percent']:.1f} % of classic CAN 1 Mbit/s; highest rate "
+              f"{lat['max_rate_classic_1M_Hz']:.0f} Hz "
+              f"(CAN FD 1/4 Mbit/s: {lat['max_rate_fd_1M_4M_Hz']:.0f} Hz)")
+    finite = [*result["step_us"].values(), *result["can_latency_us"].values()]
+    return 0 if all(math.isfinite(v) for v in finite) else 1

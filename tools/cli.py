@@ -6,7 +6,7 @@ import argparse
 import sys
 
 from models.schema import ConfigError
-from tools import bench_cmd, gains_cmd, log_cmd, model_cmd
+from tools import bench_cmd, gains_cmd, log_cmd, model_cmd, plant_cmd
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -17,6 +17,7 @@ def build_parser() -> argparse.ArgumentParser:
     model_cmd.add_parser(sub)
     gains_cmd.add_parser(sub)
     log_cmd.add_parser(sub)
+    plant_cmd.add_parser(sub)
     bench_cmd.add_parser(sub)
     return parser
 

@@ -132,7 +132,7 @@ def test_no_sample_before_the_first_load_value(request):
 def test_voltage_and_heartbeat_frames_follow_the_dbc(pair):
     backend, daq = pair
     backend.publish_status(2, 0, 5)
-    for k in range(25):
+    for _ in range(25):
         backend.write(np.array([0.0, 30.15, 75.0, 90.0, 120.3, 150.0]))
     frames = []
     while (m := daq.bus.recv(0.05)) is not None:
@@ -222,7 +222,8 @@ def test_socketcan_vcan0_round_trip():
     backend = CanBackend(2500.0, "socketcan", "vcan0").open()
     daq = can.Bus(interface="socketcan", channel="vcan0")
     try:
-        daq.send(can.Message(arbitration_id=0x101, data=CONTRACT.load.encode([1000.0, 0]), is_extended_id=False))
+        daq.send(can.Message(arbitration_id=0x101, data=CONTRACT.load.encode([1000.0, 0]),
+                             is_extended_id=False))
         daq.send(can.Message(arbitration_id=0x100, data=CONTRACT.strains.encode([0, 0, 0, 0, 0]),
                              is_extended_id=False))
         assert backend.read(timeout=0.5).axial_load == pytest.approx(1000.0, abs=0.05)

@@ -1,0 +1,94 @@
+"""``beamctl plant``: the simulated beam behind the DBC, as the DAQ on a CAN bus, and
+``beamctl bus-budget``: what the frames cost on the bus."""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+
+from hal.base import HalConfigurationError
+from hal.budget import LIMIT, bus_budget
+from hal.dbc import Contract
+from models.schema import ConfigError
+from tools.service import build_plant, load_gain_table, load_service_config, plant_geometry
+
+
+def parse_can(text: str) -> tuple[str, str]:
+    interface, sep, channel = text.partition(":")
+    if not sep or not interface or not channel:
+        raise ConfigError("--can", text, "INTERFACE:CHANNEL, e.g. socketcan:vcan0 or virtual:bench")
+    return interface, channel
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("plant", help="run the simulated beam as the DAQ on a CAN bus")
+    p.add_argument("--can", required=True, metavar="INTERFACE:CHANNEL",
+                   help="python-can interface and channel, e.g. socketcan:vcan0")
+    p.add_argument("--config", metavar="F", help="service config (model, plant and controller sections)")
+    p.add_argument("--pace", choices=("wallclock", "lockstep"), default="wallclock",
+                   help="send at the sample rate (default) or wait for each answer")
+    p.add_argument("--duration", type=float, default=0.0, metavar="S", help="stop after S plant seconds")
+    p.set_defaults(run=run_plant)
+
+    b = sub.add_parser("bus-budget", help="bus load of the DBC's frames at a sample rate")
+    b.add_argument("--rate", type=float, default=2500.0, help="sample rate in Hz (default 2500)")
+    b.add_argument("--bitrate", type=float, default=1e6, help="(nominal) bit rate (default 1e6)")
+    b.add_argument("--fd", action="store_true", help="CAN FD with bit-rate switch")
+    b.add_argument("--data-bitrate", type=float, default=4e6, help="CAN FD data bit rate (default 4e6)")
+    b.add_argument("--dbc", help="DBC file (default: the shipped hal/beamctl.dbc)")
+    b.set_defaults(run=run_budget)
+
+
+def run_plant(args: argparse.Namespace) -> int:
+    import can
+
+    from hal.emulator import CanPlantEmulator
+
+    interface, channel = parse_can(args.can)
+    cfg = load_service_config(args.config)
+    table = load_gain_table(cfg)
+    plant = build_plant(cfg, table)
+    try:
+        bus = can.Bus(interface=interface, channel=channel)
+    except (can.CanError, OSError, ValueError, ImportError) as exc:
+        print(f"beamctl plant: error: cannot open {interface}:{channel}: {exc}", file=sys.stderr)
+        return 2
+    emulator = CanPlantEmulator(bus, plant, plant_geometry(cfg), pace=args.pace)
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: emulator.stop_event.set())
+    samples = int(args.duration * plant.config.sample_rate) if args.duration else None
+    print(f"plant on {interface}:{channel}: {plant.config.sample_rate:g} Hz, {args.pace}, load "
+          f"{plant.config.load.start:g} -> {plant.config.load.end:g} N at {plant.config.load.rate:g} N/s",
+          flush=True)
+    try:
+        emulator.run(samples)
+    finally:
+        bus.shutdown()
+    d, angle = plant.deflection()
+    print(f"stopped after {emulator.samples} samples ({plant.time:.2f} s plant time), "
+          f"{emulator.voltage_frames} voltage frames, {emulator.missed_answers} missed answers, "
+          f"load {plant.axial_load:.0f} N, deflection {1e3 * d:.3f} mm at {angle:.0f} deg")
+    return 0
+
+
+def run_budget(args: argparse.Namespace) -> int:
+    try:
+        contract = Contract(args.dbc)
+    except HalConfigurationError as exc:
+        print(f"beamctl bus-budget: error: {exc}", file=sys.stderr)
+        return 2
+    b = bus_budget(contract, args.rate, args.bitrate, args.fd, args.data_bitrate)
+    print(f"{b.description}, {args.rate:g} Hz: bus load {100 * b.load:.1f} % "
+          f"({'fits' if b.load <= LIMIT else 'exceeds'} the {100 * LIMIT:.0f} % limit)")
+    for name, share in b.per_message.items():
+        codec = next(c for c in contract.codecs.values() if c.name == name)
+        print(f"  {name:<14} {codec.length} bytes every {codec.divisor:>2} samples: {100 * share:5.1f} %")
+    print(f"highest sample rate within {100 * LIMIT:.0f} %: {b.max_sample_rate_hz:.0f} Hz")
+    if not args.fd:
+        fd = bus_budget(contract, args.rate, args.bitrate, True, args.data_bitrate)
+        print(f"with CAN FD ({args.data_bitrate / 1e6:g} Mbit/s data phase): {100 * fd.load:.1f} %, "
+              f"up to {fd.max_sample_rate_hz:.0f} Hz")
+    return 0 if b.load <= LIMIT else 1

@@ -1,0 +1,129 @@
+"""The service configuration shared by ``beamctl run``, ``plant`` and ``experiment``, and
+the builders that turn it into a model, gain table, controller, plant and HAL.
+
+One YAML file, every section optional, every key checked::
+
+    model:      partial model parameters (the model the gains are designed for)
+    gains:      {table: path}            (default: the shipped gains/default.yaml)
+    controller: rt settings               (rt/config.py)
+    hal:        backend and its settings  (hal/config.py)
+    plant:      the simulated beam: plant settings (models/plant.py) and ``model:``, its own
+                beam parameters when it should differ from the controller's model
+    run:        {telemetry: path, duration: s (0: until stopped)}
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from gains.defaults import default_table_path
+from gains.table import GainTable, load_table
+from hal.base import HalBase
+from hal.config import HalConfig, hal_config
+from models import build_model
+from models.actuators import StackGeometry
+from models.params import ModelParameters, parameters_from_dict
+from models.plant import Plant, plant_config
+from models.schema import ConfigError, merge, nonnegative, path, read_yaml, validate
+from rt.allocation import geometry
+from rt.config import ControllerConfig, controller_config
+
+SECTIONS = ("model", "gains", "controller", "hal", "plant", "run")
+
+
+@dataclass(frozen=True)
+class ServiceConfig:
+    source: str
+    model: ModelParameters
+    table_path: Path
+    controller: ControllerConfig
+    hal: HalConfig
+    plant: dict = field(default_factory=dict)          # plant settings (validated when built)
+    plant_model: dict = field(default_factory=dict)    # the plant's own parameter overrides
+    telemetry: str = ""
+    duration: float = 0.0
+
+
+def _section(data: dict, name: str, source: str) -> dict:
+    value = data.get(name) or {}
+    if not isinstance(value, dict):
+        raise ConfigError(name, value, "a mapping of keys to values", source)
+    return value
+
+
+def service_config(data: dict | None = None, source: str = "") -> ServiceConfig:
+    data = data or {}
+    unknown = sorted(set(data) - set(SECTIONS))
+    if unknown:
+        raise ConfigError(unknown[0], data[unknown[0]], f"one of the sections {list(SECTIONS)}", source)
+    model_overrides = _section(data, "model", source)
+    try:
+        params = parameters_from_dict(model_overrides, source)
+    except ConfigError as exc:
+        raise ConfigError(f"model.{exc.key}", exc.value, exc.expected, source) from None
+    gains = validate({"table": "", **_section(data, "gains", source)}, {"table": path()}, source, "gains.")
+    table = Path(gains["table"]) if gains["table"] else default_table_path()
+    run = validate({"telemetry": "", "duration": 0.0, **_section(data, "run", source)},
+                   {"telemetry": path(), "duration": nonnegative("s")}, source, "run.")
+    plant = dict(_section(data, "plant", source))
+    plant_model = plant.pop("model", None) or {}
+    if not isinstance(plant_model, dict):
+        raise ConfigError("plant.model", plant_model, "a mapping of model parameters", source)
+    return ServiceConfig(
+        source=source, model=params, table_path=table,
+        controller=controller_config(_section(data, "controller", source), source, "controller."),
+        hal=hal_config(_section(data, "hal", source), source), plant=plant, plant_model=plant_model,
+        telemetry=run["telemetry"], duration=run["duration"])
+
+
+def load_service_config(path: str | Path | None) -> ServiceConfig:
+    if path is None:
+        return service_config({}, "defaults")
+    return service_config(read_yaml(path), str(path))
+
+
+def load_gain_table(cfg: ServiceConfig) -> GainTable:
+    """The configured table, refused unless designed for exactly the configured model."""
+    return load_table(cfg.table_path, cfg.model)
+
+
+def plant_geometry(cfg: ServiceConfig) -> StackGeometry:
+    """The rig the plant has: the controller's belief, or the plant's own actuators."""
+    if cfg.hal.sim["own_actuators"]:
+        a = cfg.hal.sim["actuators"]
+        return StackGeometry(a["force_constant"], a["bias_voltage"], tuple(a["orientation_deg"]))
+    return geometry(cfg.controller.actuators)
+
+
+def build_plant(cfg: ServiceConfig, table: GainTable, overrides: dict[str, Any] | None = None) -> Plant:
+    """The simulated beam: the plant section over the controller's model (or its own beam)."""
+    settings = {"sample_rate": table.design.sample_rate_hz, **cfg.plant, **(overrides or {})}
+    if settings["sample_rate"] != table.design.sample_rate_hz:
+        raise ConfigError("plant.sample_rate", settings["sample_rate"],
+                          f"the gain table's sample rate {table.design.sample_rate_hz:g} Hz", cfg.source)
+    pc = plant_config(settings, cfg.source)
+    if cfg.plant_model:
+        try:
+            own = parameters_from_dict(merge(cfg.model.to_dict(), cfg.plant_model), cfg.source)
+        except ConfigError as exc:
+            raise ConfigError(f"plant.model.{exc.key}", exc.value, exc.expected, cfg.source) from None
+        model = build_model(own)
+    else:
+        model = build_model(cfg.model)
+    return Plant(model, pc)
+
+
+def build_hal(cfg: ServiceConfig, table: GainTable, plant: Plant | None = None) -> HalBase:
+    """The configured backend (not yet open). The sim backend gets ``plant`` (or builds one)."""
+    if cfg.hal.backend == "sim":
+        from hal.sim import SimBackend
+
+        return SimBackend(plant or build_plant(cfg, table), plant_geometry(cfg), pace=cfg.hal.sim["pace"])
+    from hal.can_backend import CanBackend
+
+    c = cfg.hal.can
+    return CanBackend(table.design.sample_rate_hz, c["interface"], c["channel"], bitrate=c["bitrate"],
+                      fd=c["fd"], data_bitrate=c["data_bitrate"], dbc=c["dbc"] or None,
+                      record=c["record"] or None)
