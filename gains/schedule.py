@@ -2,10 +2,12 @@
 
 ``interpolate`` (default): K is linear between the two grid points around the filtered
 load (the gain scheduling the paper names as future work).
-``paper``: K is the gain of the grid point at or below the filtered load, as in the
-experiment's manual switching; the switch up to grid point i happens once the load passes
-L_i + h/2 and back down once it falls below L_i - h/2, so noise on the load cell cannot
-chatter between two gains.
+``paper``: K is the gain of the grid point at or above the filtered load, as the
+experiment's operator switched: on to the next gain as the rising load passed each grid point
+(with the gain of the point below, the loop is unstable between 3194 N and the next point;
+the paper held the beam to 3223 N). The switch up from grid point i happens once the load
+passes L_i + h/2 and back down once it falls below L_(i-1) - h/2, so noise on the load cell
+cannot chatter between two gains.
 Outside the grid the edge gain is held and ``out_of_range`` is raised; nothing is ever
 extrapolated. The load-cell value is low-pass filtered (first order) before the lookup.
 """
@@ -49,11 +51,14 @@ class GainSchedule:
         if not math.isfinite(load_n):
             load_n = self._first
         self.filtered_load_n = load_n
-        self.index = self._floor_index(load_n)
+        self.index = self._ceil_index(load_n) if self._paper else self._floor_index(load_n)
         self._select(load_n)
 
     def _floor_index(self, load: float) -> int:
         return min(max(bisect.bisect_right(self._loads, load) - 1, 0), self._last_index)
+
+    def _ceil_index(self, load: float) -> int:
+        return min(max(bisect.bisect_left(self._loads, load), 0), self._last_index)
 
     def _select(self, load: float) -> None:
         """Set ``index`` and ``offset_n`` (load above grid point ``index`` used for
@@ -71,9 +76,9 @@ class GainSchedule:
         self.offset_n = 0.0
         if self._paper:
             i = self.index
-            while i < self._last_index and load >= loads[i + 1] + self._half_band:
+            while i < self._last_index and load > loads[i] + self._half_band:
                 i += 1
-            while i > 0 and load < loads[i] - self._half_band:
+            while i > 0 and load < loads[i - 1] - self._half_band:
                 i -= 1
             self.index = i
         elif load <= self._first:
@@ -114,7 +119,7 @@ class GainSchedule:
 
     def gain_at(self, load_n: float) -> np.ndarray:
         """K at a load reached from below and settled (a copy): the interpolated gain, or in
-        ``paper`` mode the gain of the grid point at or below it. For the closed-loop check
+        ``paper`` mode the gain of the grid point at or above it. For the closed-loop check
         and plots, not for the loop (it resets the filter)."""
         self.reset(load_n)
         return self._out.copy()

@@ -44,7 +44,7 @@ class DesignSettings:
 @dataclass(frozen=True)
 class ScheduleSettings:
     """How K(Fx) is looked up: ``interpolate`` (linear between grid points) or ``paper``
-    (the gain of the grid point at or below the load, switched with a hysteresis band);
+    (the gain of the grid point at or above the load, switched with a hysteresis band);
     the load-cell value is low-pass filtered at ``load_filter_hz`` first."""
 
     mode: str

@@ -10,7 +10,7 @@ from models.schema import boolean, choice, merge, number, number_list, path, pos
 HAL_DEFAULTS: dict[str, Any] = {
     "backend": "sim",
     "sim": {"pace": "simulated", "own_actuators": False,
-            "actuators": {"force_constant": 2.5, "bias_voltage": 75.0, "orientation_deg": [90.0, 90.0]}},
+            "actuators": {"force_constant": 3.0, "bias_voltage": 75.0, "orientation_deg": [90.0, 90.0]}},
     "can": {"interface": "socketcan", "channel": "can0", "bitrate": 1_000_000, "fd": False,
             "data_bitrate": 4_000_000, "dbc": "", "record": ""},
 }

@@ -147,9 +147,11 @@ class PlantConfig:
         return 1.0 / self.sample_rate
 
 
-def plant_config(overrides: dict[str, Any] | None = None, source: str = "") -> PlantConfig:
-    """Validate ``overrides`` over PLANT_DEFAULTS (key by key) into a PlantConfig."""
-    v = validate(merge(PLANT_DEFAULTS, overrides or {}), _SCHEMA, source)
+def plant_config(overrides: dict[str, Any] | None = None, source: str = "",
+                 prefix: str = "") -> PlantConfig:
+    """Validate ``overrides`` over PLANT_DEFAULTS (key by key) into a PlantConfig; ``prefix``
+    names the section in messages."""
+    v = validate(merge(PLANT_DEFAULTS, overrides or {}), _SCHEMA, source, prefix)
     return PlantConfig(
         sample_rate=v["sample_rate"], modes_per_plane=v["modes_per_plane"],
         basis_reference_load=v["basis_reference_load"], load_tolerance=v["load_tolerance"],

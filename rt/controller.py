@@ -61,6 +61,9 @@ FLAG_RAMPING_TO_BIAS = 64
 class Controller:
     """The integral LQR of a gain table with its estimator, allocation and supervisor.
 
+    In every state but RUNNING the stacks are not controlled, yet q is still estimated from
+    each sample (telemetry, monitoring an uncontrolled beam).
+
     Lifecycle: ``arm(sample)`` (stacks at bias), ``start()`` (bumpless: integrator zero,
     voltages faded in from bias), ``step(sample)`` once per sample (``step(None)`` when the
     sample is missing), ``fault(...)``/``request_stop()``, ``rearm()``.
@@ -195,8 +198,11 @@ class Controller:
         state = self.supervisor.state
         if state == State.RUNNING:
             self._control()
-        elif state in (State.FAULT, State.STOPPING):
-            self._ramp()
+        else:
+            if sample is not None:      # keep observing: q for telemetry and the operator
+                np.dot(self._c0_phi_inv, self.strains, out=self.q)
+            if state in (State.FAULT, State.STOPPING):
+                self._ramp()
         r[I_STATE] = self.supervisor.state
         r[I_FAULT] = self.supervisor.fault
         return self.voltages

@@ -47,7 +47,7 @@ class ControlLoop:
 
     def __init__(self, controller: Controller, hal: HalBase, *, pacing: str | None = None,
                  telemetry: TelemetryWriter | None = None, max_cycles: int | None = None,
-                 stop_on_fault: bool = True, spin_time: float = 2e-4,
+                 stop_on_fault: bool = True, start: bool = True, spin_time: float = 2e-4,
                  clock: Callable[[], float] = time.perf_counter,
                  on_cycle: Callable[[ControlLoop], None] | None = None) -> None:
         self.controller = controller
@@ -58,6 +58,8 @@ class ControlLoop:
         self.telemetry = telemetry
         self.max_cycles = max_cycles
         self.stop_on_fault = stop_on_fault
+        self.start = start
+        self._rearm_requested = False
         self.spin_time = spin_time
         self.clock = clock
         self.on_cycle = on_cycle
@@ -72,6 +74,11 @@ class ControlLoop:
         """Thread- and signal-safe: the loop ramps to bias and ends."""
         if not self._stop_signal:
             self._stop_signal = why
+
+    def request_rearm(self) -> None:
+        """Operator acknowledgement (thread- and signal-safe): a latched fault is cleared and
+        the controller starts again from bias at the next sample."""
+        self._rearm_requested = True
 
     def _on_signal(self, signum, _frame) -> None:
         self.request_stop(signal.Signals(signum).name)
@@ -114,14 +121,15 @@ class ControlLoop:
             c.fault(Fault.HAL_ERROR, f"no first sample: {exc}")
             return
         c.arm(first)
-        c.start()
+        if self.start:
+            c.start()
 
     def _finished(self) -> bool:
         c = self.controller
         state = c.state
         if state == State.STOPPED:
             return True
-        if state == State.FAULT and self.stop_on_fault and c.at_bias:
+        if state == State.FAULT and (self.stop_on_fault or self._stop_signal) and c.at_bias:
             return True
         return False
 
@@ -151,6 +159,11 @@ class ControlLoop:
                 sample = None
                 c.fault(Fault.HAL_ERROR, str(exc))
             t1 = clock()
+            if self._rearm_requested:
+                self._rearm_requested = False
+                if c.state in (State.FAULT, State.STOPPED) and sample is not None and not self._stop_signal:
+                    c.rearm(sample)
+                    c.start()
             voltages = c.step(sample)
             t2 = clock()
             try:

@@ -93,6 +93,34 @@ def can_latency(samples: int = 5000) -> dict:
             "max_rate_fd_1M_4M_Hz": fd.max_sample_rate_hz}
 
 
+def sim_realtime_factor() -> dict:
+    """Plant seconds per wall second of the experiment's controlled run (default scenario,
+    the sim backend through the rt loop, telemetry written)."""
+    import tempfile
+    from pathlib import Path
+
+    from tools.experiment import experiment_config, run_mode
+
+    cfg, settings = experiment_config()
+    with tempfile.TemporaryDirectory() as tmp:
+        trace = run_mode("interpolate", cfg, settings, Path(tmp))
+    return {"factor": trace.plant_s / trace.wall_s, "plant_s": trace.plant_s, "wall_s": trace.wall_s}
+
+
+def gains_build_time() -> float:
+    """Seconds to build the default table: 81 LQR designs and 161 closed-loop checks."""
+    from gains.build import build_table
+    from models import build_model
+
+    model = build_model(load_table(default_table_path()).model_parameters)
+    start = time.perf_counter()
+    table = build_table(model)
+    elapsed = time.perf_counter() - start
+    if not table.all_stable:
+        raise RuntimeError("the default table is no longer stable")
+    return elapsed
+
+
 def add_parser(sub) -> None:
     p = sub.add_parser("bench", help="measure the control step and the other quoted figures")
     p.add_argument("--json", action="store_true", help="print one JSON object")
@@ -104,7 +132,11 @@ def run(args: argparse.Namespace) -> int:
     result = {"step_us": step_timing(args.steps)}
     lat = can_latency()
     result["can_latency_us"] = {"p50": lat["p50"], "p99": lat["p99"]}
+    sim = sim_realtime_factor()
+    result["sim_realtime_factor"] = sim["factor"]
+    result["gains_build_s"] = gains_build_time()
     result["can"] = lat
+    result["sim"] = sim
     if args.json:
         print(json.dumps(result, indent=1))
     else:
@@ -116,5 +148,8 @@ def run(args: argparse.Namespace) -> int:
               f"{lat['bus_load_percent']:.1f} % of classic CAN 1 Mbit/s; highest rate "
               f"{lat['max_rate_classic_1M_Hz']:.0f} Hz "
               f"(CAN FD 1/4 Mbit/s: {lat['max_rate_fd_1M_4M_Hz']:.0f} Hz)")
+        print(f"experiment simulation: {sim['factor']:.1f} x real time ({sim['plant_s']:.1f} s of plant "
+              f"time in {sim['wall_s']:.1f} s, controlled run)")
+        print(f"gain table build (81 points, 161 closed-loop checks): {result['gains_build_s']:.2f} s")
     finite = [*result["step_us"].values(), *result["can_latency_us"].values()]
     return 0 if all(math.isfinite(v) for v in finite) else 1

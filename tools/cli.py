@@ -6,7 +6,7 @@ import argparse
 import sys
 
 from models.schema import ConfigError
-from tools import bench_cmd, gains_cmd, log_cmd, model_cmd, plant_cmd
+from tools import bench_cmd, experiment_cmd, gains_cmd, log_cmd, model_cmd, plant_cmd, run_cmd
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -14,10 +14,12 @@ def build_parser() -> argparse.ArgumentParser:
         prog="beamctl",
         description="Active buckling control of a beam-column with piezo-elastic supports.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    experiment_cmd.add_parser(sub)
     model_cmd.add_parser(sub)
     gains_cmd.add_parser(sub)
     log_cmd.add_parser(sub)
     plant_cmd.add_parser(sub)
+    run_cmd.add_parser(sub)
     bench_cmd.add_parser(sub)
     return parser
 

@@ -151,3 +151,83 @@ def telemetry_figures(header: dict, rows: np.ndarray, out_dir: Path) -> list[Pat
     fig.tight_layout()
     paths.append(_save(fig, Path(out_dir) / "voltages.png"))
     return paths
+
+
+_RUN_STYLE = {"uncontrolled": ("tab:gray", "uncontrolled"),
+              "interpolate": ("tab:blue", "controlled, interpolated K(Fx), anti-windup"),
+              "paper": ("tab:orange", "controlled, paper's 500 N switching")}
+_RUN_ORDER = {"paper": 1, "uncontrolled": 2, "interpolate": 3}       # drawing order, top last
+_RUN_LINE = {"paper": (2.4, "--"), "uncontrolled": (1.2, "-"), "interpolate": (1.2, "-")}
+
+
+def experiment_figures(summary: dict, traces: dict, out_dir: Path) -> list[Path]:
+    """Figure 7a (deflection versus load), 7b (path in the y-z plane) and the voltages."""
+    plt = _pyplot()
+    paths = []
+    fig, ax = plt.subplots(figsize=(8, 5))
+    for mode, trace in sorted(traces.items(), key=lambda kv: _RUN_ORDER[kv[0]]):
+        a = trace.arrays()
+        color, label = _RUN_STYLE[mode]
+        lw, ls = _RUN_LINE[mode]
+        ax.plot(a["load_n"], a["deflection_m"] * 1e3, color=color, lw=lw, ls=ls, label=label + " (gauges)")
+        if mode != "uncontrolled":
+            ax.plot(a["load_n"], a["true_deflection_m"] * 1e3, color=color, lw=0.8, ls=":",
+                    label=label.split(",")[1].strip() + ": simulated beam (not seen by the gauges)")
+    fcr = summary["critical_load_N"]
+    ax.axvline(fcr, color="k", lw=0.8, ls="--")
+    ax.text(fcr, 1.2, f"Fx,cr = {fcr:.0f} N ", fontsize=8, va="top", ha="right")
+    for load, text in ((2438, "paper 0.5 mm"), (2723, "paper 1.0 mm"), (3223, "paper max")):
+        ax.axvline(load, color="tab:red", lw=0.6, alpha=0.5)
+        ax.text(load, 1.55, text, rotation=90, fontsize=7, color="tab:red", va="top", ha="right")
+    ax.axhline(0.5, color="0.7", lw=0.6)
+    ax.axhline(1.0, color="0.7", lw=0.6)
+    ax.set_xlim(0, max(3600, max(max(t.load_n) for t in traces.values()) + 100))
+    ax.set_ylim(0, 1.6)
+    ax.set_xlabel("axial load Fx in N")
+    ax.set_ylabel("largest lateral deflection in mm")
+    ax.set_title("(a) deflection versus axial load (figure 7a)")
+    ax.legend(fontsize=7, loc="upper left")
+    ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    paths.append(_save(fig, Path(out_dir) / "fig7a_deflection_vs_load.png"))
+
+    fig, ax = plt.subplots(figsize=(5.5, 5.5))
+    for mode, trace in traces.items():
+        a = trace.arrays()
+        color, label = _RUN_STYLE[mode]
+        ax.plot(a["deflection_y_m"] * 1e3, a["deflection_z_m"] * 1e3, color=color, lw=1.0, label=label)
+        if a["deflection_y_m"].size:
+            ax.plot(a["deflection_y_m"][-1] * 1e3, a["deflection_z_m"][-1] * 1e3, "o", color=color, ms=4)
+    ax.set_xlim(-1.6, 1.6)
+    ax.set_ylim(-1.6, 1.6)
+    ax.set_aspect("equal")
+    ax.axhline(0, color="0.7", lw=0.6)
+    ax.axvline(0, color="0.7", lw=0.6)
+    ax.set_xlabel("deflection in y in mm")
+    ax.set_ylabel("deflection in z in mm")
+    ax.set_title("(b) path in the y-z plane (figure 7b)")
+    ax.legend(fontsize=7, loc="upper left")
+    ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    paths.append(_save(fig, Path(out_dir) / "fig7b_path_yz.png"))
+
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    for mode, trace in traces.items():
+        if mode == "uncontrolled":
+            continue
+        a = trace.arrays()
+        color, label = _RUN_STYLE[mode]
+        ax.fill_between(a["load_n"], a["v_min"], a["v_max"], color=color, alpha=0.25, lw=0)
+        ax.plot(a["load_n"], a["v_max"], color=color, lw=0.8, label=f"{label}: highest and lowest stack")
+        ax.plot(a["load_n"], a["v_min"], color=color, lw=0.8)
+    for limit in (0.0, 150.0):
+        ax.axhline(limit, color="tab:red", lw=0.8, ls="--")
+    ax.set_xlabel("axial load Fx in N")
+    ax.set_ylabel("stack voltage in V")
+    ax.set_ylim(-5, 155)
+    ax.set_title("Piezo stack voltages versus load (limits 0 and 150 V)")
+    ax.legend(fontsize=7, loc="lower left")
+    ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    paths.append(_save(fig, Path(out_dir) / "voltages_vs_load.png"))
+    return paths

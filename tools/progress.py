@@ -37,7 +37,7 @@ class ProgressBar:
             if decile == self._last_decile:
                 return
             self._last_decile = decile
-            self.stream.write(f"{self.title}: {100 * fraction:3.0f} % ({done}/{total}) {label}\n")
+            self.stream.write(f"{self.title}: {100 * fraction:3.0f} % {label}\n")
         self.stream.flush()
 
     def close(self) -> float:

@@ -103,7 +103,7 @@ def build_plant(cfg: ServiceConfig, table: GainTable, overrides: dict[str, Any] 
     if settings["sample_rate"] != table.design.sample_rate_hz:
         raise ConfigError("plant.sample_rate", settings["sample_rate"],
                           f"the gain table's sample rate {table.design.sample_rate_hz:g} Hz", cfg.source)
-    pc = plant_config(settings, cfg.source)
+    pc = plant_config(settings, cfg.source, "plant.")
     if cfg.plant_model:
         try:
             own = parameters_from_dict(merge(cfg.model.to_dict(), cfg.plant_model), cfg.source)

@@ -75,13 +75,15 @@ def test_paper_switching_does_not_chatter_on_a_noisy_load_cell(table, hysteresis
         assert n > 1, "without hysteresis the noise should make the gain chatter"
     else:
         assert n == 1, f"{n} switches through one threshold"
-        np.testing.assert_array_equal(s.update(1100.0), table.gains[2])
+        np.testing.assert_array_equal(s.update(1100.0), table.gains[3])
 
 
-def test_paper_mode_uses_the_gain_at_or_below_the_load(table):
+def test_paper_mode_uses_the_gain_of_the_next_grid_point(table):
+    """The operator switched on to the next gain as the load passed each grid point."""
     s = GainSchedule(replace(table, schedule=replace(table.schedule, mode="paper")))
-    np.testing.assert_array_equal(s.gain_at(1400.0), table.gains[2])
+    np.testing.assert_array_equal(s.gain_at(1400.0), table.gains[3])
     np.testing.assert_array_equal(s.gain_at(1500.0), table.gains[3])
+    np.testing.assert_array_equal(s.gain_at(1501.0), table.gains[4])
 
 
 def test_non_finite_load_keeps_the_previous_gain_and_raises_the_flag(table):

@@ -130,8 +130,8 @@ def test_table_for_another_model_is_refused(tmp_path, small_table):
 
 
 def test_unstable_table_is_written_only_when_forced(tmp_path, paper_model):
-    unstable = build_table(paper_model, [3000.0, 3500.0], mode="paper")
-    assert not unstable.all_stable, "the 3000 N gain cannot hold the buckled beam at 3250 N"
+    unstable = build_table(paper_model, [4000.0, 4500.0])
+    assert not unstable.all_stable, "beyond 4000 N the sampled loop cannot hold the beam"
     with pytest.raises(GainTableError, match="--force"):
         write_table(unstable, tmp_path / "u.yaml")
     path = write_table(replace(unstable, forced=True), tmp_path / "u.yaml")

@@ -178,12 +178,51 @@ def test_telemetry_survives_kill_9_up_to_the_last_flush(tmp_path):
     """)
     proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True,
                             cwd=os.path.dirname(os.path.dirname(os.path.dirname(__file__))))
-    assert proc.stdout.readline().strip() == "started"
-    time.sleep(1.5)
-    killed_at = 1.5
-    proc.kill()
-    proc.wait()
+    try:
+        assert proc.stdout.readline().strip() == "started"
+        time.sleep(1.5)
+        killed_at = 1.5
+    finally:
+        proc.kill()
+        proc.wait()
     _, rows = read_telemetry(path)
     assert len(rows) > 100
     assert rows[-1, 0] > killed_at - 0.5 - 0.2, f"last record {rows[-1, 0]:.2f} s, killed at ~{killed_at} s"
     np.testing.assert_array_equal(rows[:, 1], 2 * rows[:, 0])
+
+
+def test_a_stop_request_ends_a_run_that_stays_in_fault(table):
+    """With stop_on_fault off (experiments, a service waiting for re-arm) the loop keeps
+    cycling at bias after a fault; a stop request must still end it."""
+    loop, hal = _loop(table, [DEFLECTED] * 100 + [((np.nan, 0.0, 0.0, 0.0), 1500.0)], default=oscillating)
+    loop.stop_on_fault = False
+    loop.on_cycle = lambda lp: lp.request_stop("test") if lp.cycles == 2000 else None
+    result = _run(loop)
+    assert result.state == "FAULT" and result.fault == Fault.STRAIN_NOT_FINITE.name
+    assert 2000 <= result.cycles < 2100, result.cycles
+    _assert_safe_ramp(hal, was_driving=False)
+
+
+def test_operator_rearm_restarts_after_a_latched_fault(table):
+    """What SIGUSR1 does in ``beamctl run``: after a fault at bias, a re-arm request clears
+    it and the controller starts again, bumpless, from bias."""
+    loop, hal = _loop(table, [DEFLECTED] * 100 + [((np.nan, 0.0, 0.0, 0.0), 1500.0)],
+                      default=oscillating, start_ramp_time=0.05)
+    loop.stop_on_fault = False
+    seen = []
+
+    def on_cycle(lp):
+        state = lp.controller.state
+        if not seen or seen[-1] != state:
+            seen.append(state)
+        if state == State.FAULT and lp.controller.at_bias and State.RUNNING not in seen[2:]:
+            lp.request_rearm()
+        if len(seen) >= 3 and state == State.RUNNING and lp.cycles > 900:
+            lp.request_stop("test")
+
+    loop.on_cycle = on_cycle
+    result = _run(loop)
+    assert seen[:3] == [State.RUNNING, State.FAULT, State.RUNNING], seen
+    assert result.state == "STOPPED" and result.fault == "NONE"
+    v = np.array(hal.written)
+    assert np.abs(np.diff(v, axis=0)).max() < 2.0, "re-arm starts from bias without a jump"

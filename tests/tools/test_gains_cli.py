@@ -19,13 +19,12 @@ def test_build_writes_a_checked_table_and_shows_progress(tmp_path, capsys, paper
     assert list(table.loads_n) == [0.0, 1000.0, 2000.0] and table.all_stable
 
 
-def test_unstable_paper_table_is_not_written_without_force(tmp_path, capsys):
-    out = tmp_path / "paper.yaml"
-    assert main(["gains", "build", "--mode", "paper", "--grid", "3000:3500:500", "--out", str(out)]) == 1
+def test_unstable_table_is_not_written_without_force(tmp_path, capsys):
+    out = tmp_path / "beyond.yaml"
+    assert main(["gains", "build", "--grid", "4000:4500:500", "--out", str(out)]) == 1
     assert not out.exists()
     assert "UNSTABLE" in capsys.readouterr().out
-    assert main(["gains", "build", "--mode", "paper", "--grid", "3000:3500:500", "--out", str(out),
-                 "--force"]) == 0
+    assert main(["gains", "build", "--grid", "4000:4500:500", "--out", str(out), "--force"]) == 0
     assert "forced" in capsys.readouterr().out and out.exists()
 
 

@@ -1,0 +1,100 @@
+"""``beamctl experiment``: the acceptance of the main job on a faster load ramp (200 N/s
+instead of 50 N/s; the loads at 0.5 mm and 1.0 mm move by less than 0.3 %)."""
+
+import json
+
+import pytest
+
+from models.schema import ConfigError
+from rt.telemetry import read_telemetry
+from tools.cli import main
+from tools.experiment import BOW_AMPLITUDE_M, experiment_config
+
+CRITICAL_LOAD_N = 3193.5
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory):
+    out = tmp_path_factory.mktemp("experiment")
+    scenario = out / "fast.yaml"
+    scenario.write_text("plant:\n  load: {start: 260.0, end: 3400.0, rate: 200.0, hold: 0.2}\n")
+    import contextlib
+    import io
+
+    buffer = io.StringIO()
+    with contextlib.redirect_stdout(buffer):
+        code = main(["experiment", "--config", str(scenario), "--out", str(out / "report"), "--json"])
+    assert code == 0
+    return json.loads(buffer.getvalue()), out / "report"
+
+
+def test_uncontrolled_beam_reaches_the_paper_s_deflections_within_5_percent(report):
+    s, _ = report
+    u = s["uncontrolled"]
+    assert u["load_at_0.5mm_N"] == pytest.approx(2438.0, rel=0.05), u
+    assert u["load_at_1.0mm_N"] == pytest.approx(2723.0, rel=0.05), u
+    assert u["buckling_angle_deg"] == pytest.approx(234.0, abs=2.0), "passive buckling direction"
+
+
+def test_controlled_beam_stays_straight_to_3000_N_and_holds_beyond_the_critical_load(report):
+    s, _ = report
+    c = s["controlled"]
+    assert c["max_deflection_below_3000N_mm"] < 0.05, c
+    assert 0.0 <= c["min_voltage_V"] and c["max_voltage_V"] <= 150.0, "voltages within range"
+    assert c["load_at_1.0mm_N"] >= CRITICAL_LOAD_N, c
+    assert s["critical_load_N"] == pytest.approx(CRITICAL_LOAD_N, abs=1.0)
+
+
+def test_interpolated_schedule_holds_at_least_as_much_as_the_paper_switching(report):
+    """Both hold the beam until the stacks run out of force (the same rig): equal within the
+    load resolution of 1 N."""
+    s, _ = report
+    assert s["controlled"]["load_at_1.0mm_N"] >= s["paper_switching"]["load_at_1.0mm_N"] - 1.0, s
+    assert s["paper_switching"]["load_at_1.0mm_N"] == pytest.approx(3223.0, rel=0.01), (
+        "the force constant makes the paper's setup fail near its 3223 N")
+
+
+def test_json_has_the_documented_keys(report):
+    s, _ = report
+    assert set(s["uncontrolled"]) >= {"load_at_0.5mm_N", "load_at_1.0mm_N", "buckling_angle_deg"}
+    assert set(s["controlled"]) >= {"load_at_1.0mm_N", "max_voltage_V", "max_deflection_below_3000N_mm",
+                                    "buckling_angle_deg"}
+
+
+def test_report_folder_has_figures_summary_and_readable_telemetry(report):
+    s, folder = report
+    for name in ("fig7a_deflection_vs_load.png", "fig7b_path_yz.png", "voltages_vs_load.png"):
+        assert (folder / name).stat().st_size > 10_000, name
+    assert "load at 1.0 mm" in (folder / "summary.txt").read_text()
+    assert json.loads((folder / "summary.json").read_text())["controlled"] == s["controlled"]
+    for mode in ("uncontrolled", "interpolate", "paper"):
+        header, rows = read_telemetry(folder / f"telemetry_{mode}.btl")
+        assert header["meta"]["mode"] == mode and len(rows) > 10_000
+
+
+def test_scenario_overrides_the_plant_separately_from_the_model():
+    cfg, settings = experiment_config({"plant": {"model": {"beam": {"radius": 4.05e-3}},
+                                                 "bow": {"amplitude": 2e-4}}})
+    assert cfg.model.beam.radius == 4.0e-3, "the gains' model is untouched"
+    assert cfg.plant_model == {"beam": {"radius": 4.05e-3}}
+    assert cfg.plant["bow"]["amplitude"] == 2e-4 and cfg.plant["bow"]["angle_deg"] == 234.0
+    assert experiment_config()[0].plant["bow"]["amplitude"] == BOW_AMPLITUDE_M
+
+
+@pytest.mark.parametrize(("data", "key"), [
+    ({"experiment": {"deflection_limt": 1}}, "experiment.deflection_limt"),
+    ({"plant": {"load": {"rate": -5}}}, "plant.load.rate"),
+    ({"plants": {}}, "plants"),
+])
+def test_bad_scenario_is_refused_naming_the_key(tmp_path, capsys, data, key):
+    import yaml
+
+    f = tmp_path / "bad.yaml"
+    f.write_text(yaml.safe_dump(data))
+    assert main(["experiment", "--config", str(f), "--out", str(tmp_path / "r")]) == 2
+    assert key in capsys.readouterr().err
+    with pytest.raises(ConfigError):
+        cfg, _ = experiment_config(data)
+        from tools.service import build_plant, load_gain_table
+
+        build_plant(cfg, load_gain_table(cfg))

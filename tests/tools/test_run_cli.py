@@ -1,0 +1,76 @@
+"""``beamctl run``: the service, its refusals and its operator re-arm."""
+
+import can
+import numpy as np
+import pytest
+import yaml
+
+from hal.emulator import CanPlantEmulator
+from rt.controller import COL
+from rt.telemetry import read_telemetry
+from tests.hal.rigs import GEOMETRY, make_plant
+from tools.cli import main
+
+
+def _config(tmp_path, **sections):
+    f = tmp_path / "service.yaml"
+    f.write_text(yaml.safe_dump(sections))
+    return str(f)
+
+
+SIM = {"hal": {"backend": "sim"}, "controller": {"pacing": "sample"},
+       "plant": {"load": {"start": 1000.0, "end": 1000.0}, "bow": {"amplitude": 5e-5, "angle_deg": 234.0}}}
+
+
+def test_run_for_a_duration_writes_telemetry_and_exits_0(tmp_path, capsys):
+    tel = tmp_path / "run.btl"
+    cfg = _config(tmp_path, **SIM, run={"telemetry": str(tel), "duration": 0.4})
+    assert main(["run", "--config", cfg]) == 0
+    out = capsys.readouterr().out
+    assert "ended STOPPED" in out and "0 dropped" in out
+    _, rows = read_telemetry(tel)
+    assert 1000 + 1250 <= len(rows) <= 1000 + 1250 + 2, "0.4 s of control, then 0.5 s of ramp to bias"
+    np.testing.assert_array_equal(rows[-1, COL["voltage_a1_V"]:COL["voltage_a1_V"] + 6], 75.0)
+
+
+def test_a_table_for_another_model_is_refused(tmp_path, capsys):
+    cfg = _config(tmp_path, **SIM, model={"supports": {"rotational_stiffness": 200.0}})
+    assert main(["run", "--config", cfg]) == 2
+    err = capsys.readouterr().err
+    assert "model.sha256" in err and "regenerate" in err
+
+
+def test_a_bus_over_budget_is_refused_with_what_would_fit(tmp_path, capsys):
+    cfg = _config(tmp_path, hal={"backend": "can", "can": {"interface": "virtual", "channel": "budget",
+                                                            "bitrate": 500000}})
+    assert main(["run", "--config", cfg]) == 2
+    err = capsys.readouterr().err
+    assert "bus load" in err and "at most 1417 Hz" in err and "CAN FD" in err
+
+
+def test_a_forced_table_is_refused(tmp_path, capsys):
+    table = tmp_path / "forced.yaml"
+    assert main(["gains", "build", "--grid", "4000:4500:500", "--out", str(table), "--force"]) == 0
+    capsys.readouterr()
+    cfg = _config(tmp_path, **SIM, gains={"table": str(table)})
+    assert main(["run", "--config", cfg]) == 2
+    assert "forced" in capsys.readouterr().err
+
+
+def test_service_against_the_plant_emulator_over_virtual_can(tmp_path, capsys):
+    bus = can.Bus(interface="virtual", channel="service")
+    emulator = CanPlantEmulator(bus, make_plant(), GEOMETRY, pace="lockstep").start()
+    cfg = _config(tmp_path, hal={"backend": "can", "can": {"interface": "virtual", "channel": "service"}},
+                  controller={"pacing": "sample"},
+                  run={"telemetry": str(tmp_path / "can.btl"), "duration": 0.4})
+    try:
+        assert main(["run", "--config", cfg, "--json"]) == 0
+    finally:
+        emulator.stop()
+        bus.shutdown()
+    import json
+
+    summary = json.loads(capsys.readouterr().out.split("\n", 1)[1])
+    assert summary["state"] == "STOPPED" and summary["hal"]["sequence_gaps"] == 0
+    assert summary["hal"]["bus_load_percent"] == pytest.approx(70.6, abs=0.1)
+    assert emulator.status_frames > 0 and emulator.last_state in (2, 4, 5)

@@ -1,0 +1,73 @@
+"""``beamctl experiment``: the paper's figure 7 on the simulated rig."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from tools.experiment import load_experiment_config, run_experiment
+from tools.progress import ProgressBar
+
+PAPER = {"uncontrolled": {"load_at_0.5mm_N": 2438.0, "load_at_1.0mm_N": 2723.0, "buckling_angle_deg": 234.0},
+         "controlled": {"load_at_1.0mm_N": 3223.0, "buckling_angle_deg": 128.0}}
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("experiment", help="the paper's experiment (figure 7) on the simulated rig",
+                       description="Ramp the axial load on the simulated beam: uncontrolled, then "
+                                   "controlled with the interpolated schedule, then with the paper's "
+                                   "500 N switching; write a report folder.")
+    p.add_argument("--config", metavar="F", help="scenario file (plant, controller, model, experiment)")
+    p.add_argument("--out", metavar="DIR", default="experiment-report", help="report folder")
+    p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    p.add_argument("--no-paper", action="store_true", help="skip the run with the paper's 500 N switching")
+    p.set_defaults(run=run)
+
+
+def _fmt(value, unit="", digits=0) -> str:
+    return "-" if value is None else f"{value:.{digits}f}{unit}"
+
+
+def summary_table(summary: dict) -> str:
+    rows = [("", "uncontrolled", "interpolated", "paper 500 N", "paper (experiment)")]
+    runs = [summary.get(k, {}) for k in ("uncontrolled", "controlled", "paper_switching")]
+    def line(label, key, unit, digits, paper):
+        rows.append((label, *[_fmt(r.get(key), unit, digits) for r in runs], paper))
+    line("load at 0.5 mm", "load_at_0.5mm_N", " N", 0, "2438 N")
+    line("load at 1.0 mm", "load_at_1.0mm_N", " N", 0, "2723 N / 3223 N")
+    line("direction at failure", "buckling_angle_deg", " deg", 0, "234 deg / 128 deg")
+    line("max deflection < 3000 N (gauges)", "max_deflection_below_3000N_mm", " mm", 3, "0 (controlled)")
+    line("max deflection < 3000 N (beam)", "true_max_deflection_below_3000N_mm", " mm", 3, "-")
+    line("voltage range min", "min_voltage_V", " V", 1, "")
+    line("voltage range max", "max_voltage_V", " V", 1, "150 V at failure")
+    widths = [max(len(r[i]) for r in rows) for i in range(5)]
+    text = "\n".join("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)) for r in rows)
+    return f"critical load Fx,cr = {summary['critical_load_N']:.0f} N\n" + text
+
+
+def run(args: argparse.Namespace) -> int:
+    cfg, settings = load_experiment_config(args.config)
+    if args.no_paper:
+        settings = {**settings, "paper_mode": False}
+    out = Path(args.out)
+    bar = ProgressBar("experiment")
+    start = time.monotonic()
+    summary, traces = run_experiment(cfg, settings, out, progress=bar)
+    bar.close()
+    summary["wall_time_s"] = time.monotonic() - start
+    from tools import plots
+
+    figures = plots.experiment_figures(summary, traces, out)
+    table = summary_table(summary)
+    (out / "summary.txt").write_text(table + "\n")
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    if args.json:
+        print(json.dumps(summary, indent=1))
+    else:
+        print(table)
+        print(f"\n{sum(t.plant_s for t in traces.values()):.0f} s of plant time in "
+              f"{summary['wall_time_s']:.1f} s ({summary['sim_realtime_factor']:.1f} x real time)")
+        print(f"report: {out}/ ({', '.join(p.name for p in figures)}, summary.txt, summary.json, telemetry)")
+    return 0

@@ -1,0 +1,106 @@
+"""``beamctl run``: the controller service against the lab's DAQ (or any configured HAL).
+
+Loads and validates the config and the gain table (whose model hash must match the
+configured model), checks the bus budget (CAN), arms, runs until SIGINT/SIGTERM, writes
+telemetry. A fault ramps the stacks to bias and holds them there, latched, until the operator
+re-arms with SIGUSR1 (``systemctl kill -s USR1 beamctl``) or stops the service. Under systemd
+it reports readiness and feeds the watchdog from the control loop.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+
+from hal.base import HalError
+from models.schema import ConfigError
+from rt import realtime
+from rt.controller import RECORD_COLUMNS, Controller
+from rt.loop import ControlLoop
+from rt.telemetry import TelemetryWriter
+from tools.sdnotify import Notifier
+from tools.service import build_hal, load_gain_table, load_service_config
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("run", help="the controller service (lab: against the CAN DAQ)")
+    p.add_argument("--config", metavar="F", required=True, help="service config, e.g. deploy/lab.yaml")
+    p.add_argument("--telemetry", metavar="FILE", help="telemetry file (default: run.telemetry or "
+                                                        "beamctl-<time>.btl)")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: run.duration; "
+                                                               "0 until stopped)")
+    p.add_argument("--require-rt", action="store_true",
+                   help="refuse to run without SCHED_FIFO, affinity and locked memory")
+    p.add_argument("--json", action="store_true", help="print the run summary as JSON")
+    p.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    cfg = load_service_config(args.config)
+    table = load_gain_table(cfg)
+    if table.forced:
+        raise ConfigError("gains.table", str(cfg.table_path),
+                          "a table whose closed loop is stable everywhere (this one was forced)", cfg.source)
+    notifier = Notifier()
+    try:
+        hal = build_hal(cfg, table)
+    except HalError as exc:
+        print(f"beamctl run: error: {exc}", file=sys.stderr)
+        return 2
+    controller = Controller(table, cfg.controller)
+    path = Path(args.telemetry or cfg.telemetry or time.strftime("beamctl-%Y%m%d-%H%M%S.btl"))
+    capacity = int(cfg.controller.telemetry.buffer_time * table.design.sample_rate_hz)
+    telemetry = TelemetryWriter(path, RECORD_COLUMNS, capacity=capacity,
+                                flush_interval=cfg.controller.telemetry.flush_interval,
+                                meta={"config": cfg.source, "gain_table": str(cfg.table_path),
+                                      "model_sha256": table.model_sha256, "backend": cfg.hal.backend})
+    duration = cfg.duration if args.duration is None else args.duration
+    max_cycles = int(duration * table.design.sample_rate_hz) if duration else None
+
+    def on_cycle(loop: ControlLoop) -> None:
+        notifier.feed()
+
+    loop = ControlLoop(controller, hal, telemetry=telemetry, stop_on_fault=False,
+                       max_cycles=max_cycles, on_cycle=on_cycle if notifier.watchdog_interval else None)
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGUSR1, lambda *_: loop.request_rearm())
+    print(f"beamctl run: {cfg.hal.backend} backend, {table.design.sample_rate_hz:g} Hz, "
+          f"{cfg.controller.pacing} pacing, gain table {cfg.table_path}, telemetry {path}", flush=True)
+    try:
+        hal.open()
+    except HalError as exc:
+        telemetry.close()
+        print(f"beamctl run: error: {exc}", file=sys.stderr)
+        return 2
+    notifier.ready(f"running at {table.design.sample_rate_hz:g} Hz")
+    try:
+        result = loop.run(require_rt=args.require_rt)
+    except realtime.RealtimeError as exc:
+        print(f"beamctl run: error: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        notifier.stopping()
+        hal.close()
+    summary = {"state": result.state, "fault": result.fault, "reason": result.reason, "cycles": result.cycles,
+               "stopped_by": result.stop_requested_by, "realtime": result.realtime,
+               "timing": result.timing, "telemetry": result.telemetry, "hal": result.hal}
+    if args.json:
+        print(json.dumps(summary, indent=1))
+    else:
+        for item, report in result.realtime.items():
+            print(f"  real-time {item}: {report}")
+        t = result.timing
+        print(f"  {result.cycles} cycles; step p50 {t['compute']['p50_us']:.1f} us, p99 "
+              f"{t['compute']['p99_us']:.1f} us, max {t['compute']['max_us']:.1f} us; cycle p50 "
+              f"{t['cycle']['p50_us']:.1f} us; {t['overruns']} overruns, "
+              f"{t['missed_periods']} missed periods")
+        tel = result.telemetry
+        print(f"  telemetry: {tel.get('written', 0)} records, {tel.get('dropped', 0)} dropped, "
+              f"{tel.get('path', '')}")
+        print(f"  ended {result.state}: {result.reason} (stopped by {result.stop_requested_by or '-'})")
+    return 0
