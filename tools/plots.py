@@ -21,6 +21,19 @@ def _pyplot():
     return plt
 
 
+def _finish(fig, ax, path: Path, *, xlabel: str, ylabel: str, title: str,
+            legend: dict | None = None) -> Path:
+    """Label, grid and save a single-axes figure."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    if legend is not None:
+        ax.legend(**legend)
+    ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
 def _save(fig, path: Path) -> Path:
     path = Path(path)
     if path.parent.exists() and not path.parent.is_dir():
@@ -46,13 +59,9 @@ def eigenfrequencies_vs_load(model: FEModel, reduced: ModalModel, path: Path) ->
                 label=f"reduced model (modes at {reduced.reference_load:g} N)" if i == 0 else None)
     ax.axvline(fcr, color="0.5", lw=0.8)
     ax.text(fcr, ax.get_ylim()[1] * 0.95, f" Fx,cr = {fcr:.0f} N", ha="right", va="top")
-    ax.set_xlabel("axial load Fx in N")
-    ax.set_ylabel("eigenfrequency f in Hz")
-    ax.set_title("Eigenfrequencies f1/2/3 versus axial load (figure 5b)")
-    ax.grid(True, alpha=0.3)
-    ax.legend(loc="upper left", bbox_to_anchor=(0.0, 0.88))
-    fig.tight_layout()
-    return _save(fig, path)
+    return _finish(fig, ax, path, xlabel="axial load Fx in N", ylabel="eigenfrequency f in Hz",
+                   title="Eigenfrequencies f1/2/3 versus axial load (figure 5b)",
+                   legend={"loc": "upper left", "bbox_to_anchor": (0.0, 0.88)})
 
 
 def frequency_response_full_vs_reduced(model: FEModel, reduced: ModalModel, axial_load: float,
@@ -143,13 +152,9 @@ def telemetry_figures(header: dict, rows: np.ndarray, out_dir: Path) -> list[Pat
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for name in ("a1", "a2", "a3", "b1", "b2", "b3"):
         ax.plot(load, rows[:, col[f"voltage_{name}_V"]], lw=0.7, label=name)
-    ax.set_xlabel("axial load Fx in N (filtered load cell)")
-    ax.set_ylabel("stack voltage in V")
-    ax.set_title("Piezo stack voltages")
-    ax.grid(True, alpha=0.3)
-    ax.legend(ncol=6, fontsize=8)
-    fig.tight_layout()
-    paths.append(_save(fig, Path(out_dir) / "voltages.png"))
+    paths.append(_finish(fig, ax, Path(out_dir) / "voltages.png",
+                         xlabel="axial load Fx in N (filtered load cell)", ylabel="stack voltage in V",
+                         title="Piezo stack voltages", legend={"ncol": 6, "fontsize": 8}))
     return paths
 
 
@@ -183,13 +188,10 @@ def experiment_figures(summary: dict, traces: dict, out_dir: Path) -> list[Path]
     ax.axhline(1.0, color="0.7", lw=0.6)
     ax.set_xlim(0, max(3600, max(max(t.load_n) for t in traces.values()) + 100))
     ax.set_ylim(0, 1.6)
-    ax.set_xlabel("axial load Fx in N")
-    ax.set_ylabel("largest lateral deflection in mm")
-    ax.set_title("(a) deflection versus axial load (figure 7a)")
-    ax.legend(fontsize=7, loc="upper left")
-    ax.grid(True, alpha=0.3)
-    fig.tight_layout()
-    paths.append(_save(fig, Path(out_dir) / "fig7a_deflection_vs_load.png"))
+    paths.append(_finish(fig, ax, Path(out_dir) / "fig7a_deflection_vs_load.png",
+                         xlabel="axial load Fx in N", ylabel="largest lateral deflection in mm",
+                         title="(a) deflection versus axial load (figure 7a)",
+                         legend={"fontsize": 7, "loc": "upper left"}))
 
     fig, ax = plt.subplots(figsize=(5.5, 5.5))
     for mode, trace in traces.items():
@@ -203,13 +205,9 @@ def experiment_figures(summary: dict, traces: dict, out_dir: Path) -> list[Path]
     ax.set_aspect("equal")
     ax.axhline(0, color="0.7", lw=0.6)
     ax.axvline(0, color="0.7", lw=0.6)
-    ax.set_xlabel("deflection in y in mm")
-    ax.set_ylabel("deflection in z in mm")
-    ax.set_title("(b) path in the y-z plane (figure 7b)")
-    ax.legend(fontsize=7, loc="upper left")
-    ax.grid(True, alpha=0.3)
-    fig.tight_layout()
-    paths.append(_save(fig, Path(out_dir) / "fig7b_path_yz.png"))
+    paths.append(_finish(fig, ax, Path(out_dir) / "fig7b_path_yz.png", xlabel="deflection in y in mm",
+                         ylabel="deflection in z in mm", title="(b) path in the y-z plane (figure 7b)",
+                         legend={"fontsize": 7, "loc": "upper left"}))
 
     fig, ax = plt.subplots(figsize=(8, 4.5))
     for mode, trace in traces.items():
@@ -222,12 +220,9 @@ def experiment_figures(summary: dict, traces: dict, out_dir: Path) -> list[Path]
         ax.plot(a["load_n"], a["v_min"], color=color, lw=0.8)
     for limit in (0.0, 150.0):
         ax.axhline(limit, color="tab:red", lw=0.8, ls="--")
-    ax.set_xlabel("axial load Fx in N")
-    ax.set_ylabel("stack voltage in V")
     ax.set_ylim(-5, 155)
-    ax.set_title("Piezo stack voltages versus load (limits 0 and 150 V)")
-    ax.legend(fontsize=7, loc="lower left")
-    ax.grid(True, alpha=0.3)
-    fig.tight_layout()
-    paths.append(_save(fig, Path(out_dir) / "voltages_vs_load.png"))
+    paths.append(_finish(fig, ax, Path(out_dir) / "voltages_vs_load.png", xlabel="axial load Fx in N",
+                         ylabel="stack voltage in V",
+                         title="Piezo stack voltages versus load (limits 0 and 150 V)",
+                         legend={"fontsize": 7, "loc": "lower left"}))
     return paths
