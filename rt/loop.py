@@ -94,7 +94,11 @@ class ControlLoop:
             if acquire_rt:
                 rt_report = realtime.acquire(self.controller.config.realtime, require_rt)
             self._arm()
-            self._cycle_until_done()
+            try:
+                self._cycle_until_done()
+            except Exception:
+                self._emergency_ramp()
+                raise
         finally:
             if acquire_rt:
                 realtime.release()
@@ -123,6 +127,20 @@ class ControlLoop:
         c.arm(first)
         if self.start:
             c.start()
+
+    def _emergency_ramp(self) -> None:
+        """An unexpected error left the loop: bring the stacks from the last voltages to bias
+        along the configured ramp, writing directly to the HAL, before the error propagates."""
+        c = self.controller
+        bias = c.config.actuators.bias_voltage
+        start = c.voltages.copy()
+        steps = max(1, round(c.config.safety.ramp_time * c.sample_rate_hz))
+        for k in range(1, steps + 1):
+            try:
+                self.hal.write(bias + (start - bias) * (1.0 - k / steps))
+            except Exception:   # the HAL is gone too: nothing more can be sent
+                return
+            time.sleep(self.period if self.pacing == "timer" else 0.0)
 
     def _finished(self) -> bool:
         c = self.controller

@@ -40,6 +40,21 @@ def add_parser(sub) -> None:
     p.set_defaults(run=run)
 
 
+def _check_voltage_range(cfg, hal) -> None:
+    """The controller's voltage range must be one the DBC can carry."""
+    contract = getattr(hal, "contract", None)
+    if contract is None:
+        return
+    signal_range = contract.voltages.signals[0]
+    a = cfg.controller.actuators
+    for key, value in (("min_voltage", a.min_voltage), ("max_voltage", a.max_voltage),
+                       ("bias_voltage", a.bias_voltage)):
+        if not signal_range.minimum <= value <= signal_range.maximum:
+            raise ConfigError(f"controller.actuators.{key}", value,
+                              f"a voltage the DBC's {contract.voltages.name} carries "
+                              f"([{signal_range.minimum:g}, {signal_range.maximum:g}] V)", cfg.source)
+
+
 def run(args: argparse.Namespace) -> int:
     cfg = load_service_config(args.config)
     table = load_gain_table(cfg)
@@ -52,6 +67,7 @@ def run(args: argparse.Namespace) -> int:
     except HalError as exc:
         print(f"beamctl run: error: {exc}", file=sys.stderr)
         return 2
+    _check_voltage_range(cfg, hal)
     controller = Controller(table, cfg.controller)
     path = Path(args.telemetry or cfg.telemetry or time.strftime("beamctl-%Y%m%d-%H%M%S.btl"))
     capacity = int(cfg.controller.telemetry.buffer_time * table.design.sample_rate_hz)

@@ -226,3 +226,16 @@ def test_operator_rearm_restarts_after_a_latched_fault(table):
     assert result.state == "STOPPED" and result.fault == "NONE"
     v = np.array(hal.written)
     assert np.abs(np.diff(v, axis=0)).max() < 2.0, "re-arm starts from bias without a jump"
+
+
+def test_an_unexpected_error_in_the_loop_ramps_the_stacks_to_bias_before_propagating(table):
+    loop, hal = _loop(table, [], default=oscillating, max_cycles=None)
+
+    def explode(lp):
+        if lp.cycles == 600:
+            raise RuntimeError("a bug in a callback")
+
+    loop.on_cycle = explode
+    with pytest.raises(RuntimeError, match="a bug"):
+        _run(loop)
+    _assert_safe_ramp(hal)

@@ -74,3 +74,11 @@ def test_service_against_the_plant_emulator_over_virtual_can(tmp_path, capsys):
     assert summary["state"] == "STOPPED" and summary["hal"]["sequence_gaps"] == 0
     assert summary["hal"]["bus_load_percent"] == pytest.approx(70.6, abs=0.1)
     assert emulator.status_frames > 0 and emulator.last_state in (2, 4, 5)
+
+
+def test_a_voltage_range_the_dbc_cannot_carry_is_refused(tmp_path, capsys):
+    cfg = _config(tmp_path, hal={"backend": "can", "can": {"interface": "virtual", "channel": "range"}},
+                  controller={"actuators": {"min_voltage": -20.0, "bias_voltage": 60.0}})
+    assert main(["run", "--config", cfg]) == 2
+    err = capsys.readouterr().err
+    assert "controller.actuators.min_voltage" in err and "[0, 150] V" in err
