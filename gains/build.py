@@ -16,6 +16,7 @@ from gains.schedule import GainSchedule
 from gains.table import DesignSettings, GainTable, ScheduleSettings
 from models.fe import FEModel
 from models.modal import reduce
+from models.schema import ConfigError
 
 Progress = Callable[[int, int, str], None]
 
@@ -59,6 +60,8 @@ def build_table(model: FEModel, loads_n: Sequence[float] | None = None, mode: st
     if loads_n is None:
         loads_n = PAPER_GRID_N if mode == "paper" else np.arange(0.0, 4000.0 + 1e-9, 50.0)
     loads = np.asarray(loads_n, dtype=float)
+    if mode == "interpolate" and len(loads) < 2:
+        raise ConfigError("--grid", loads.tolist(), "at least two grid points to interpolate between")
     schedule = schedule or replace(DEFAULT_SCHEDULE, mode=mode)
     reduced = reduce(model)
     total = len(loads) + (len(check_points(loads)) if check else 0)

@@ -25,6 +25,7 @@ from hal.dbc import STRAIN_SIGNALS, VOLTAGE_SIGNALS, Contract
 
 CAN_ERR_BUSOFF = 0x40          # SocketCAN error class bit in an error frame's identifier
 LOAD_SILENCE_DIVISORS = 5      # load frames that may be missed before the load counts as stale
+RATE_WINDOW_S = 0.2            # seconds of strain frames over which the DAQ's rate is measured
 
 
 class CanBackend(HalBase):
@@ -32,7 +33,8 @@ class CanBackend(HalBase):
 
     def __init__(self, sample_rate_hz: float, interface: str, channel: str, bitrate: float = 1_000_000,
                  fd: bool = False, data_bitrate: float | None = None, dbc: str | Path | None = None,
-                 record: str | Path | None = None, bus_options: dict | None = None) -> None:
+                 record: str | Path | None = None, bus_options: dict | None = None,
+                 rate_tolerance: float = 0.05) -> None:
         super().__init__(sample_rate_hz)
         self.contract = Contract(dbc)
         self.budget = check_budget(self.contract, sample_rate_hz, bitrate, fd, data_bitrate)
@@ -59,6 +61,10 @@ class CanBackend(HalBase):
         self._status_index = [c.status.index(n) for n in ("state", "fault", "flags", "sequence")]
         self._status_divisor = c.status.divisor
         self._load_silence = LOAD_SILENCE_DIVISORS * c.load.divisor
+        # the DAQ must sample at the rate the gains were designed for: measured over windows
+        # of RATE_WINDOW strain frames, refused when off by more than rate_tolerance (0: off)
+        self.rate_tolerance = float(rate_tolerance)
+        self._rate_window = max(64, int(sample_rate_hz * RATE_WINDOW_S))
         self._reset_counters()
 
     def _reset_counters(self) -> None:
@@ -71,6 +77,9 @@ class CanBackend(HalBase):
         self._samples_since_load = 0
         self._voltage_seq = 0
         self._writes = 0
+        self._window_count = 0
+        self._window_start = None
+        self.measured_rate_hz = None
 
     # -- lifecycle ---------------------------------------------------------------------------------
     def _open(self) -> None:
@@ -131,6 +140,8 @@ class CanBackend(HalBase):
                     counters["sequence_gaps"] += 1
                     counters["samples_missed"] += (seq - self._last_seq - 1) & 0xFF
                 self._last_seq = seq
+                if self.rate_tolerance:
+                    self._check_rate(msg.timestamp)
                 if self._load is None:
                     continue          # no load value yet: not a complete sample
                 self._samples_since_load += 1
@@ -160,6 +171,24 @@ class CanBackend(HalBase):
                 continue
             if frame_id not in self._own_ids:
                 counters["unknown_ids"] += 1
+
+    def _check_rate(self, stamp: float) -> None:
+        if self._window_start is None:
+            self._window_start, self._window_count = stamp, 0
+            return
+        self._window_count += 1
+        if self._window_count < self._rate_window:
+            return
+        elapsed = stamp - self._window_start
+        self._window_start, self._window_count = stamp, 0
+        if elapsed <= 0:
+            return
+        rate = self._rate_window / elapsed
+        self.measured_rate_hz = rate
+        if abs(rate / self.sample_rate_hz - 1.0) > self.rate_tolerance:
+            raise HalProtocolError(f"can: {self.contract.strains.name} arrive at {rate:.0f} Hz; the gains "
+                                   f"are designed for {self.sample_rate_hz:g} Hz (tolerance "
+                                   f"{100 * self.rate_tolerance:g} %)")
 
     # -- send ------------------------------------------------------------------------------------------
     def _send(self, frame_id: int, data: bytes) -> None:

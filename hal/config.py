@@ -12,7 +12,7 @@ HAL_DEFAULTS: dict[str, Any] = {
     "sim": {"pace": "simulated", "own_actuators": False,
             "actuators": {"force_constant": 3.0, "bias_voltage": 75.0, "orientation_deg": [90.0, 90.0]}},
     "can": {"interface": "socketcan", "channel": "can0", "bitrate": 1_000_000, "fd": False,
-            "data_bitrate": 4_000_000, "dbc": "", "record": ""},
+            "data_bitrate": 4_000_000, "dbc": "", "record": "", "rate_tolerance": 0.05},
 }
 
 _SCHEMA = {
@@ -21,7 +21,8 @@ _SCHEMA = {
             "actuators": {"force_constant": positive("N/V"), "bias_voltage": number("V"),
                           "orientation_deg": number_list(number("deg"), 2, "angles (supports A and B)")}},
     "can": {"interface": text(), "channel": text(), "bitrate": positive("bit/s"), "fd": boolean(),
-            "data_bitrate": positive("bit/s"), "dbc": path(), "record": path()},
+            "data_bitrate": positive("bit/s"), "dbc": path(), "record": path(),
+            "rate_tolerance": number(low=0.0, high=0.5)},
 }
 
 

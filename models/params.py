@@ -57,7 +57,7 @@ _SCHEMA = {
                               "modal damping ratios"),
         "identification_load": nonnegative("N"),
     },
-    "fe": {"nodes": integer(low=5)},
+    "fe": {"nodes": integer(low=5, high=401)},
     "modal": {"reference_load": nonnegative("N")},
 }
 

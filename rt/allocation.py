@@ -32,7 +32,7 @@ class Allocator:
 
     ``allocate(u, voltages)`` writes the voltages and returns nothing; the scale applied per
     support (1.0: reachable, < 1: saturated, 0: invalid demand) is left in ``scale_a`` and
-    ``scale_b`` and the demanded forces in ``demand``.
+    ``scale_b``.
     """
 
     def __init__(self, actuators: Actuators) -> None:

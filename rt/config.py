@@ -23,7 +23,7 @@ from models.schema import (
 MAX_AMPLIFIER_VOLTAGE = 150.0
 
 CONTROLLER_DEFAULTS: dict[str, Any] = {
-    "pacing": "timer",
+    "pacing": "sample",
     "anti_windup": True,
     "start_ramp_time": 0.2,
     "actuators": {
@@ -41,7 +41,7 @@ CONTROLLER_DEFAULTS: dict[str, Any] = {
     },
     "safety": {
         "strain_limit_fraction": 0.5,   # of the proportional-limit strain sigma_p / E
-        "load_range": [0.0, 5000.0],    # N, load-cell range; the gain table's range applies too
+        "load_range": [-200.0, 5000.0],  # N, load-cell range; the gain table's range applies too
         "stale_periods": 5,
         "overrun_streak": 10,
         "saturation_time": 0.5,         # s of continuous saturation before a fault
@@ -129,6 +129,11 @@ def controller_config(overrides: dict[str, Any] | None = None, source: str = "",
     if not a["min_voltage"] <= a["bias_voltage"] <= a["max_voltage"]:
         raise ConfigError(f"{prefix}actuators.bias_voltage", a["bias_voltage"],
                           f"a voltage within [{a['min_voltage']:g}, {a['max_voltage']:g}] V", source)
+    t = v["telemetry"]
+    if t["buffer_time"] < 2 * t["flush_interval"]:
+        raise ConfigError(f"{prefix}telemetry.buffer_time", t["buffer_time"],
+                          f"at least twice telemetry.flush_interval ({2 * t['flush_interval']:g} s): the "
+                          f"ring must hold what arrives between two flushes", source)
     s = v["safety"]
     if not s["load_range"][0] < s["load_range"][1]:
         raise ConfigError(f"{prefix}safety.load_range", list(s["load_range"]), "low < high", source)

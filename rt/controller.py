@@ -27,7 +27,7 @@ from gains.table import GainTable
 from hal.base import Sample
 from rt.allocation import Allocator
 from rt.config import ControllerConfig
-from rt.safety import Fault, State, Supervisor
+from rt.safety import Fault, State, Supervisor, TransitionError
 
 RECORD_COLUMNS = (
     ["time_s", "sequence", "state", "fault", "flags"]
@@ -137,7 +137,10 @@ class Controller:
         self._clear(sample)
 
     def rearm(self, sample: Sample | None = None) -> None:
-        """Operator acknowledgement after a fault or stop."""
+        """Operator acknowledgement after a fault or stop; only once the ramp has reached bias
+        (the voltages never jump)."""
+        if not self.at_bias:
+            raise TransitionError("cannot re-arm before the voltages have ramped to bias")
         self.supervisor.rearm()
         self._clear(sample)
 
@@ -156,8 +159,18 @@ class Controller:
         np.multiply(self.q, -self._hp_b0, out=self._hp_state)
 
     def start(self) -> None:
+        """Start controlling from the latest sample: integrator at zero, the velocity filter
+        at rest on the current q (no kick however long the controller sat armed), voltages
+        faded in from bias. A start on a non-finite strain faults at once."""
         self.supervisor.start()
         self._steps_since_start = 0
+        self.xi[:] = 0.0
+        if not np.all(np.isfinite(self.q)):
+            self.q[:] = 0.0
+            self._hp_state[:] = 0.0
+            self.fault(Fault.STRAIN_NOT_FINITE, "non-finite strain when starting")
+            return
+        np.multiply(self.q, -self._hp_b0, out=self._hp_state)
 
     def request_stop(self) -> None:
         """Ramp to bias and stop (SIGINT/SIGTERM, end of run)."""

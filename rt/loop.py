@@ -140,7 +140,7 @@ class ControlLoop:
                 self.hal.write(bias + (start - bias) * (1.0 - k / steps))
             except Exception:   # the HAL is gone too: nothing more can be sent
                 return
-            time.sleep(self.period if self.pacing == "timer" else 0.0)
+            time.sleep(self.period)
 
     def _finished(self) -> bool:
         c = self.controller
@@ -178,8 +178,11 @@ class ControlLoop:
                 c.fault(Fault.HAL_ERROR, str(exc))
             t1 = clock()
             if self._rearm_requested:
-                self._rearm_requested = False
-                if c.state in (State.FAULT, State.STOPPED) and sample is not None and not self._stop_signal:
+                # honoured once the ramp has reached bias (kept pending until then)
+                if c.state == State.RUNNING or self._stop_signal:
+                    self._rearm_requested = False
+                elif c.state in (State.FAULT, State.STOPPED) and c.at_bias and sample is not None:
+                    self._rearm_requested = False
                     c.rearm(sample)
                     c.start()
             voltages = c.step(sample)

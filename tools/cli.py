@@ -27,7 +27,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Run ``beamctl`` with ``argv`` (default: the process arguments); return the exit code."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:          # --help, or a flag argparse refused (it printed why)
+        return int(exc.code or 0)
     try:
         return int(args.run(args) or 0)
     except ConfigError as exc:

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import signal
 import sys
 import threading
@@ -12,7 +13,19 @@ from hal.base import HalConfigurationError
 from hal.budget import LIMIT, bus_budget
 from hal.dbc import Contract
 from models.schema import ConfigError
+from tools.run_cmd import seconds
 from tools.service import build_plant, load_gain_table, load_service_config, plant_geometry
+
+
+def positive(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a finite number > 0")
+    return value
 
 
 def parse_can(text: str) -> tuple[str, str]:
@@ -29,14 +42,14 @@ def add_parser(sub) -> None:
     p.add_argument("--config", metavar="F", help="service config (model, plant and controller sections)")
     p.add_argument("--pace", choices=("wallclock", "lockstep"), default="wallclock",
                    help="send at the sample rate (default) or wait for each answer")
-    p.add_argument("--duration", type=float, default=0.0, metavar="S", help="stop after S plant seconds")
+    p.add_argument("--duration", type=seconds, default=0.0, metavar="S", help="stop after S plant seconds")
     p.set_defaults(run=run_plant)
 
     b = sub.add_parser("bus-budget", help="bus load of the DBC's frames at a sample rate")
-    b.add_argument("--rate", type=float, default=2500.0, help="sample rate in Hz (default 2500)")
-    b.add_argument("--bitrate", type=float, default=1e6, help="(nominal) bit rate (default 1e6)")
+    b.add_argument("--rate", type=positive, default=2500.0, help="sample rate in Hz (default 2500)")
+    b.add_argument("--bitrate", type=positive, default=1e6, help="(nominal) bit rate (default 1e6)")
     b.add_argument("--fd", action="store_true", help="CAN FD with bit-rate switch")
-    b.add_argument("--data-bitrate", type=float, default=4e6, help="CAN FD data bit rate (default 4e6)")
+    b.add_argument("--data-bitrate", type=positive, default=4e6, help="CAN FD data bit rate (default 4e6)")
     b.add_argument("--dbc", help="DBC file (default: the shipped hal/beamctl.dbc)")
     b.set_defaults(run=run_budget)
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import signal
 import sys
 import threading
@@ -32,12 +33,23 @@ def add_parser(sub) -> None:
     p.add_argument("--config", metavar="F", required=True, help="service config, e.g. deploy/lab.yaml")
     p.add_argument("--telemetry", metavar="FILE", help="telemetry file (default: run.telemetry or "
                                                         "beamctl-<time>.btl)")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: run.duration; "
-                                                               "0 until stopped)")
+    p.add_argument("--duration", type=seconds, metavar="S",
+                   help="stop after S seconds (default: run.duration; 0 until stopped)")
     p.add_argument("--require-rt", action="store_true",
                    help="refuse to run without SCHED_FIFO, affinity and locked memory")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
     p.set_defaults(run=run)
+
+
+def seconds(text: str) -> float:
+    """argparse type: a finite, non-negative number of seconds."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a finite number of seconds >= 0")
+    return value
 
 
 def _check_voltage_range(cfg, hal) -> None:
@@ -75,6 +87,7 @@ def run(args: argparse.Namespace) -> int:
                                 flush_interval=cfg.controller.telemetry.flush_interval,
                                 meta={"config": cfg.source, "gain_table": str(cfg.table_path),
                                       "model_sha256": table.model_sha256, "backend": cfg.hal.backend})
+    telemetry.start()   # before the loop asks for SCHED_FIFO: the writer must not inherit it
     duration = cfg.duration if args.duration is None else args.duration
     max_cycles = int(duration * table.design.sample_rate_hz) if duration else None
 

@@ -71,11 +71,15 @@ def service_config(data: dict | None = None, source: str = "") -> ServiceConfig:
     plant_model = plant.pop("model", None) or {}
     if not isinstance(plant_model, dict):
         raise ConfigError("plant.model", plant_model, "a mapping of model parameters", source)
+    controller = controller_config(_section(data, "controller", source), source, "controller.")
+    hal = hal_config(_section(data, "hal", source), source)
+    if hal.backend == "can" and controller.pacing == "timer":
+        raise ConfigError("controller.pacing", "timer",
+                          "'sample' with the can backend: the DAQ streams at its own clock, and a "
+                          "timer of the PC's would let frames queue up and add delay", source)
     return ServiceConfig(
-        source=source, model=params, table_path=table,
-        controller=controller_config(_section(data, "controller", source), source, "controller."),
-        hal=hal_config(_section(data, "hal", source), source), plant=plant, plant_model=plant_model,
-        telemetry=run["telemetry"], duration=run["duration"])
+        source=source, model=params, table_path=table, controller=controller, hal=hal, plant=plant,
+        plant_model=plant_model, telemetry=run["telemetry"], duration=run["duration"])
 
 
 def load_service_config(path: str | Path | None) -> ServiceConfig:
@@ -126,4 +130,4 @@ def build_hal(cfg: ServiceConfig, table: GainTable, plant: Plant | None = None) 
     c = cfg.hal.can
     return CanBackend(table.design.sample_rate_hz, c["interface"], c["channel"], bitrate=c["bitrate"],
                       fd=c["fd"], data_bitrate=c["data_bitrate"], dbc=c["dbc"] or None,
-                      record=c["record"] or None)
+                      record=c["record"] or None, rate_tolerance=c["rate_tolerance"])

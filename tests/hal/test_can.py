@@ -230,3 +230,22 @@ def test_socketcan_vcan0_round_trip():
     finally:
         backend.close()
         daq.shutdown()
+
+
+def test_a_daq_sampling_at_another_rate_than_the_gains_is_refused(pair):
+    """The gains, filters and integrator assume the table's 2500 Hz; a DAQ set to 2000 Hz
+    (here: frames paced at 0.5 ms) is a protocol error, i.e. a fault."""
+    import time as _time
+
+    backend, daq = pair
+    with pytest.raises(hal.HalProtocolError, match=r"arrive at \d+ Hz; the gains are designed for 2500 Hz"):
+        next_send = _time.perf_counter()
+        for k in range(1200):
+            next_send += 0.0005
+            while _time.perf_counter() < next_send:
+                pass
+            if k % 10 == 0:
+                daq.load(seq=k // 10)
+            daq.strains()
+            backend.read(timeout=0.1)
+    assert backend.measured_rate_hz < 2200

@@ -14,7 +14,9 @@ from tests.hal.rigs import TABLE, CanRig
 
 def test_beam_held_straight_at_3000_N_then_safe_when_the_daq_stops():
     rig = CanRig(load={"start": 3000.0, "end": 3000.0}, bow={"amplitude": 5e-5, "angle_deg": 234.0})
-    config = controller_config({"pacing": "sample"})
+    # 25 periods (15 ms with the 1.5-period read time-out): the emulator shares this process's
+    # interpreter, so a shorter budget would fault on a thread hand-off rather than a silent DAQ
+    config = controller_config({"pacing": "sample", "safety": {"stale_periods": 25}})
     controller = Controller(TABLE, config)
     plant = rig.plant
     log = {"deflection": [], "voltages": [], "stopped_at": None, "fault_at": None}

@@ -202,3 +202,40 @@ def test_the_step_allocates_no_arrays_and_calls_no_scipy(table):
     # a few Python ints (the step counters) are replaced each step; nothing may accumulate
     assert current - base < 256, f"{current - base} bytes kept by 1000 more steps: a leak"
     assert peak - base < 300, f"{peak - base} bytes peak: a step allocated an array"
+
+
+def test_rearm_waits_for_the_ramp_to_reach_bias(table):
+    c = _running(table, start_ramp_time=0.0)
+    for _ in range(300):
+        c.step(_sample((1e-4, -5e-5, 5e-5, 2e-5), 1500.0))
+    c.fault(Fault.OPERATOR, "test")
+    c.step(_sample())
+    with pytest.raises(TransitionError, match="ramped to bias"):
+        c.rearm(_sample())
+    while not c.at_bias:
+        c.step(_sample())
+    c.rearm(_sample())
+    assert c.state == State.ARMED
+
+
+def test_a_start_after_a_long_armed_dwell_has_no_velocity_kick(table):
+    """The velocity filter starts at rest on the sample the controller starts on, however far
+    the beam moved while armed."""
+    c = Controller(table, controller_config({"start_ramp_time": 0.0}))
+    c.arm(_sample((0.0, 0.0, 0.0, 0.0)))
+    for k in range(2000):   # the beam deflects while the controller is only armed
+        c.step(_sample((4e-5 * k / 2000, 0.0, 2e-5 * k / 2000, 0.0)))
+    c.start()
+    c.step(_sample((4e-5, 0.0, 2e-5, 0.0)))
+    true_rate = table.c0_phi_inv @ np.array([4e-5, 0.0, 2e-5, 0.0]) / 2000 * c.sample_rate_hz
+    assert np.all(np.abs(c.qdot) <= np.abs(true_rate) + 1e-12), (
+        f"estimate {c.qdot} exceeds the beam's own velocity {true_rate}")
+
+
+def test_a_start_on_a_non_finite_strain_faults(table):
+    c = Controller(table, controller_config())
+    c.arm(_sample())
+    c.step(_sample((np.nan, 0.0, 0.0, 0.0)))
+    c.start()
+    assert c.state == State.FAULT and c.supervisor.fault == Fault.STRAIN_NOT_FINITE
+    np.testing.assert_array_equal(c.step(_sample()), 75.0)

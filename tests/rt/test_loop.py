@@ -239,3 +239,28 @@ def test_an_unexpected_error_in_the_loop_ramps_the_stacks_to_bias_before_propaga
     with pytest.raises(RuntimeError, match="a bug"):
         _run(loop)
     _assert_safe_ramp(hal)
+
+
+def test_a_rearm_requested_during_the_ramp_waits_for_bias(table):
+    """SIGUSR1 right after a fault must not make the voltages jump back to bias."""
+    loop, hal = _loop(table, [DEFLECTED] * 300 + [((np.nan, 0.0, 0.0, 0.0), 1500.0)],
+                      default=oscillating, start_ramp_time=0.05)
+    loop.stop_on_fault = False
+    states = []
+
+    def on_cycle(lp):
+        states.append(lp.controller.state)
+        if states[-1] == State.FAULT and states.count(State.FAULT) == 2:
+            lp.request_rearm()        # two samples into the 125-sample ramp
+        if lp.cycles > 1000:
+            lp.request_stop("test")
+
+    loop.on_cycle = on_cycle
+    _run(loop)
+    first_fault = states.index(State.FAULT)
+    restarted = first_fault + states[first_fault:].index(State.RUNNING)
+    assert restarted - first_fault >= RAMP_TIME * 2500, "re-armed only after the ramp"
+    v = np.array(hal.written)
+    ramp = v[first_fault - 1:restarted]
+    step = np.abs(np.diff(ramp, axis=0)).max()
+    assert step <= np.abs(ramp[0] - 75.0).max() / (RAMP_TIME * 2500) * (1 + 1e-9) + 1e-12

@@ -60,7 +60,8 @@ def test_a_forced_table_is_refused(tmp_path, capsys):
 def test_service_against_the_plant_emulator_over_virtual_can(tmp_path, capsys):
     bus = can.Bus(interface="virtual", channel="service")
     emulator = CanPlantEmulator(bus, make_plant(), GEOMETRY, pace="lockstep").start()
-    cfg = _config(tmp_path, hal={"backend": "can", "can": {"interface": "virtual", "channel": "service"}},
+    cfg = _config(tmp_path, hal={"backend": "can", "can": {"interface": "virtual", "channel": "service",
+                                                            "rate_tolerance": 0.0}},
                   controller={"pacing": "sample"},
                   run={"telemetry": str(tmp_path / "can.btl"), "duration": 0.4})
     try:
@@ -82,3 +83,47 @@ def test_a_voltage_range_the_dbc_cannot_carry_is_refused(tmp_path, capsys):
     assert main(["run", "--config", cfg]) == 2
     err = capsys.readouterr().err
     assert "controller.actuators.min_voltage" in err and "[0, 150] V" in err
+
+
+def test_a_run_longer_than_the_telemetry_ring_loses_nothing(tmp_path, capsys):
+    """The writer thread drains the ring while the loop runs (a 0.6 s ring, a 1.5 s run)."""
+    tel = tmp_path / "long.btl"
+    controller = {"pacing": "sample", "telemetry": {"buffer_time": 0.6, "flush_interval": 0.1}}
+    cfg = _config(tmp_path, **{**SIM, "controller": controller,
+                               "hal": {"backend": "sim", "sim": {"pace": "wallclock"}},
+                               "run": {"telemetry": str(tel), "duration": 1.5}})
+    assert main(["run", "--config", cfg, "--json"]) == 0
+    import json
+
+    summary = json.loads(capsys.readouterr().out.split("\n", 1)[1])
+    assert summary["telemetry"]["dropped"] == 0
+    _, rows = read_telemetry(tel)
+    assert len(rows) == summary["cycles"] == summary["telemetry"]["written"]
+
+
+def test_a_ring_shorter_than_two_flushes_is_refused(tmp_path, capsys):
+    cfg = _config(tmp_path, controller={"telemetry": {"buffer_time": 0.2, "flush_interval": 0.25}})
+    assert main(["run", "--config", cfg]) == 2
+    assert "controller.telemetry.buffer_time" in capsys.readouterr().err
+
+
+def test_timer_pacing_with_the_can_backend_is_refused(tmp_path, capsys):
+    cfg = _config(tmp_path, hal={"backend": "can"}, controller={"pacing": "timer"})
+    assert main(["run", "--config", cfg]) == 2
+    assert "controller.pacing" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv", [
+    ["run", "--config", "x.yaml", "--duration", "nan"],
+    ["run", "--config", "x.yaml", "--duration", "-1"],
+    ["bus-budget", "--bitrate", "0"],
+    ["bench", "--steps", "0"],
+])
+def test_bad_flags_are_refused_with_exit_2(argv, capsys):
+    assert main(argv) == 2
+    assert "expected" in capsys.readouterr().err
+
+
+def test_a_single_point_grid_cannot_be_interpolated(tmp_path, capsys):
+    assert main(["gains", "build", "--grid", "100:100:1", "--out", str(tmp_path / "g.yaml")]) == 2
+    assert "--grid" in capsys.readouterr().err and not (tmp_path / "g.yaml").exists()
