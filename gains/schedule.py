@@ -96,25 +96,27 @@ class GainSchedule:
         gains[index] + offset_n slopes[index]."""
         return self._slopes
 
+    def _filter(self, load_cell_n: float) -> bool:
+        """Feed a reading to the load filter; a non-finite one is refused (False) and flagged."""
+        if load_cell_n != load_cell_n or load_cell_n in (math.inf, -math.inf):
+            self.out_of_range = True
+            return False
+        self.filtered_load_n += self._alpha * (load_cell_n - self.filtered_load_n)
+        return True
+
     def locate(self, load_cell_n: float) -> None:
         """Filter the reading and find ``index`` and ``offset_n`` without forming K (for a
         loop that applies the gains itself); same rules as ``update``."""
-        if load_cell_n != load_cell_n or load_cell_n in (math.inf, -math.inf):
-            self.out_of_range = True
-            return
-        self.filtered_load_n += self._alpha * (load_cell_n - self.filtered_load_n)
-        self._locate(self.filtered_load_n)
+        if self._filter(load_cell_n):
+            self._locate(self.filtered_load_n)
 
     def update(self, load_cell_n: float) -> np.ndarray:
         """Filter the new load-cell reading and return K(Fx) [4 x 12] (a reused array).
 
         A non-finite reading is not fed to the filter: the previous gain is kept and
         ``out_of_range`` raised (the safety supervisor decides what to do about it)."""
-        if load_cell_n != load_cell_n or load_cell_n in (math.inf, -math.inf):
-            self.out_of_range = True
-            return self._out
-        self.filtered_load_n += self._alpha * (load_cell_n - self.filtered_load_n)
-        self._select(self.filtered_load_n)
+        if self._filter(load_cell_n):
+            self._select(self.filtered_load_n)
         return self._out
 
     def gain_at(self, load_n: float) -> np.ndarray:

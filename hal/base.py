@@ -51,10 +51,6 @@ class Sample:
         self.strains = np.zeros(4)    # eps_y1, eps_z1, eps_y2, eps_z2
         self.axial_load = 0.0         # N, load cell
 
-    def copy_from(self, other: Sample) -> None:
-        self.timestamp, self.sequence, self.axial_load = other.timestamp, other.sequence, other.axial_load
-        self.strains[:] = other.strains
-
 
 N_STRAINS = 4
 N_VOLTAGES = 6

@@ -155,8 +155,6 @@ class Controller:
         if sample is not None:
             self.schedule.reset(sample.axial_load)
             np.dot(self._c0_phi_inv, sample.strains, out=self.q)
-        # high-pass state for a constant input q: no velocity kick at the start
-        np.multiply(self.q, -self._hp_b0, out=self._hp_state)
 
     def start(self) -> None:
         """Start controlling from the latest sample: integrator at zero, the velocity filter

@@ -16,7 +16,6 @@ from __future__ import annotations
 import json
 import struct
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
@@ -50,6 +49,15 @@ class TelemetryWriter:
         self._file = open(self.path, "wb")  # noqa: SIM115 (closed in close())
         self._file.write(MAGIC + struct.pack("<Q", len(header)) + header)
         self._file.flush()
+
+    @classmethod
+    def for_controller(cls, path: str | Path, controller, meta: dict | None = None) -> TelemetryWriter:
+        """A writer for a controller's records, sized by its ``telemetry`` settings."""
+        from rt.controller import RECORD_COLUMNS
+
+        settings = controller.config.telemetry
+        return cls(path, RECORD_COLUMNS, capacity=int(settings.buffer_time * controller.sample_rate_hz),
+                   flush_interval=settings.flush_interval, meta=meta)
 
     def start(self) -> TelemetryWriter:
         self._thread = threading.Thread(target=self._run, name="telemetry-writer", daemon=True)
@@ -143,11 +151,3 @@ def export(path: str | Path, out: str | Path, fmt: str) -> Path:
     else:
         raise TelemetryError(f"unknown export format {fmt!r}: expected 'mat' or 'csv'")
     return out
-
-
-def wait_written(writer: TelemetryWriter, count: int, timeout: float = 5.0) -> bool:
-    """Wait until ``count`` records are on disk (tests and reports)."""
-    end = time.monotonic() + timeout
-    while writer.written < count and time.monotonic() < end:
-        time.sleep(0.01)
-    return writer.written >= count

@@ -15,6 +15,7 @@ from gains.table import load_table
 from hal.base import Sample
 from rt.config import controller_config
 from rt.controller import Controller
+from tools.argtypes import steps
 
 
 def percentiles_us(seconds: np.ndarray) -> dict:
@@ -119,17 +120,6 @@ def gains_build_time() -> float:
     if not table.all_stable:
         raise RuntimeError("the default table is no longer stable")
     return elapsed
-
-
-def steps(text: str) -> int:
-    """argparse type: at least 1000 steps (a 99th percentile needs them)."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1000:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected an integer >= 1000")
-    return value
 
 
 def add_parser(sub) -> None:

@@ -33,7 +33,7 @@ from hal.sim import SimBackend
 from models import build_model, critical_load, reduce
 from models.analysis import lateral_displacements
 from models.schema import boolean, merge, positive, read_yaml, validate
-from rt.controller import RECORD_COLUMNS, Controller
+from rt.controller import Controller
 from rt.loop import ControlLoop
 from rt.telemetry import TelemetryWriter
 from tools.service import (
@@ -132,10 +132,8 @@ def run_mode(mode: str, cfg: ServiceConfig, settings: dict, out_dir: Path, progr
     limit = settings["deflection_limit"]
     ramp = plant.config.load
     end_time = ramp.duration()
-    capacity = int(controller_cfg.telemetry.buffer_time * table.design.sample_rate_hz)
-    telemetry = TelemetryWriter(out_dir / f"telemetry_{mode}.btl", RECORD_COLUMNS, capacity=capacity,
-                                flush_interval=controller_cfg.telemetry.flush_interval,
-                                meta={"mode": mode, "scenario": cfg.source}).start()
+    telemetry = TelemetryWriter.for_controller(out_dir / f"telemetry_{mode}.btl", controller,
+                                               meta={"mode": mode, "scenario": cfg.source}).start()
     trace.telemetry = str(telemetry.path)
     counter = {"n": 0}
 

@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import argparse
-import math
 import signal
 import sys
 import threading
@@ -13,19 +12,8 @@ from hal.base import HalConfigurationError
 from hal.budget import LIMIT, bus_budget
 from hal.dbc import Contract
 from models.schema import ConfigError
-from tools.run_cmd import seconds
+from tools.argtypes import positive, seconds
 from tools.service import build_plant, load_gain_table, load_service_config, plant_geometry
-
-
-def positive(text: str) -> float:
-    """argparse type: a finite number > 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a finite number > 0")
-    return value
 
 
 def parse_can(text: str) -> tuple[str, str]:

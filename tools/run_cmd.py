@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import signal
 import sys
 import threading
@@ -21,9 +20,10 @@ from pathlib import Path
 from hal.base import HalError
 from models.schema import ConfigError
 from rt import realtime
-from rt.controller import RECORD_COLUMNS, Controller
+from rt.controller import Controller
 from rt.loop import ControlLoop
 from rt.telemetry import TelemetryWriter
+from tools.argtypes import seconds
 from tools.sdnotify import Notifier
 from tools.service import build_hal, load_gain_table, load_service_config
 
@@ -39,17 +39,6 @@ def add_parser(sub) -> None:
                    help="refuse to run without SCHED_FIFO, affinity and locked memory")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
     p.set_defaults(run=run)
-
-
-def seconds(text: str) -> float:
-    """argparse type: a finite, non-negative number of seconds."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value >= 0):
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a finite number of seconds >= 0")
-    return value
 
 
 def _check_voltage_range(cfg, hal) -> None:
@@ -82,11 +71,9 @@ def run(args: argparse.Namespace) -> int:
     _check_voltage_range(cfg, hal)
     controller = Controller(table, cfg.controller)
     path = Path(args.telemetry or cfg.telemetry or time.strftime("beamctl-%Y%m%d-%H%M%S.btl"))
-    capacity = int(cfg.controller.telemetry.buffer_time * table.design.sample_rate_hz)
-    telemetry = TelemetryWriter(path, RECORD_COLUMNS, capacity=capacity,
-                                flush_interval=cfg.controller.telemetry.flush_interval,
-                                meta={"config": cfg.source, "gain_table": str(cfg.table_path),
-                                      "model_sha256": table.model_sha256, "backend": cfg.hal.backend})
+    telemetry = TelemetryWriter.for_controller(
+        path, controller, meta={"config": cfg.source, "gain_table": str(cfg.table_path),
+                                "model_sha256": table.model_sha256, "backend": cfg.hal.backend})
     telemetry.start()   # before the loop asks for SCHED_FIFO: the writer must not inherit it
     duration = cfg.duration if args.duration is None else args.duration
     max_cycles = int(duration * table.design.sample_rate_hz) if duration else None

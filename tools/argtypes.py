@@ -1,0 +1,29 @@
+"""argparse types for numeric flags: a bad value is refused by argparse (exit 2) with what
+was expected, instead of a traceback further on."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from collections.abc import Callable
+
+
+def number(*, low: float, inclusive: bool = True, integer: bool = False) -> Callable[[str], float]:
+    """A finite number above ``low`` (or at it, when ``inclusive``)."""
+    expected = f"{'an integer' if integer else 'a finite number'} {'>=' if inclusive else '>'} {low:g}"
+
+    def parse(text: str):
+        try:
+            value = int(text) if integer else float(text)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and (value >= low if inclusive else value > low)):
+            raise argparse.ArgumentTypeError(f"{text!r}: expected {expected}")
+        return value
+
+    return parse
+
+
+seconds = number(low=0.0)
+positive = number(low=0.0, inclusive=False)
+steps = number(low=1000, integer=True)
