@@ -4,10 +4,10 @@ Turns a model (models/) into a gain table file offline and reads it back, valida
 real-time loop (rt/).
 """
 
-from gains.discrete import LoopCheck, VelocityFilter, velocity_filter
-from gains.lqr import Weights, augmented_system, lqr_gain
-from gains.schedule import GainSchedule
-from gains.table import (
+from beamctl.gains.discrete import LoopCheck, VelocityFilter, velocity_filter
+from beamctl.gains.lqr import Weights, augmented_system, lqr_gain
+from beamctl.gains.schedule import GainSchedule
+from beamctl.gains.table import (
     DesignSettings,
     GainTable,
     GainTableError,

@@ -9,14 +9,14 @@ from importlib import metadata
 
 import numpy as np
 
-from gains.defaults import DEFAULT_DESIGN, DEFAULT_SCHEDULE, PAPER_GRID_N
-from gains.discrete import LoopCheck, check_load, velocity_filter
-from gains.lqr import lqr_gain
-from gains.schedule import GainSchedule
-from gains.table import DesignSettings, GainTable, ScheduleSettings
-from models.fe import FEModel
-from models.modal import reduce
-from models.schema import ConfigError
+from beamctl.gains.defaults import DEFAULT_DESIGN, DEFAULT_SCHEDULE, PAPER_GRID_N
+from beamctl.gains.discrete import LoopCheck, check_load, velocity_filter
+from beamctl.gains.lqr import lqr_gain
+from beamctl.gains.schedule import GainSchedule
+from beamctl.gains.table import DesignSettings, GainTable, ScheduleSettings
+from beamctl.models.fe import FEModel
+from beamctl.models.modal import reduce
+from beamctl.models.schema import ConfigError
 
 Progress = Callable[[int, int, str], None]
 

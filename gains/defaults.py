@@ -37,8 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
-from gains.lqr import Weights
-from gains.table import DesignSettings, ScheduleSettings
+from beamctl.gains.lqr import Weights
+from beamctl.gains.table import DesignSettings, ScheduleSettings
 
 DEFAULT_WEIGHTS = Weights.from_modes(displacement=(2e10, 3e5), velocity=(5e3, 0.5),
                                      integral=(5e14, 5e14))
@@ -53,4 +53,4 @@ DEFAULT_TABLE = "default.yaml"
 
 def default_table_path() -> Path:
     """The gain table shipped in gains/ (generated from the paper's parameters)."""
-    return Path(str(resources.files("gains") / DEFAULT_TABLE))
+    return Path(str(resources.files("beamctl.gains") / DEFAULT_TABLE))

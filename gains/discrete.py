@@ -22,8 +22,8 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.signal as sig
 
-from models.analysis import PLANE_IO, state_space
-from models.fe import FEModel, plane_indices
+from beamctl.models.analysis import PLANE_IO, state_space
+from beamctl.models.fe import FEModel, plane_indices
 
 # columns of the 12-state vector (eq. 22) and rows of u belonging to each bending plane
 PLANE_STATES = {"y": [0, 2, 4, 6, 8, 10], "z": [1, 3, 5, 7, 9, 11]}

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg as sla
 
-from models.modal import ModalModel
+from beamctl.models.modal import ModalModel
 
 N_STATES = 12
 N_INPUTS = 4

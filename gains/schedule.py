@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from gains.table import GainTable
+from beamctl.gains.table import GainTable
 
 
 class GainSchedule:

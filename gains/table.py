@@ -19,10 +19,10 @@ from typing import Any
 import numpy as np
 import yaml
 
-from gains.discrete import LoopCheck
-from gains.lqr import N_INPUTS, N_STATES, Weights
-from models.params import ModelParameters, parameters_from_dict
-from models.schema import ConfigError, read_yaml
+from beamctl.gains.discrete import LoopCheck
+from beamctl.gains.lqr import N_INPUTS, N_STATES, Weights
+from beamctl.models.params import ModelParameters, parameters_from_dict
+from beamctl.models.schema import ConfigError, read_yaml
 
 FORMAT = "beamctl-gain-table/1"
 SCHEDULE_MODES = ("interpolate", "paper")

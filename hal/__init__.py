@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import importlib
 
-from hal.base import (
+from beamctl.hal.base import (
     HalBase,
     HalConfigurationError,
     HalConnectionLost,
@@ -19,8 +19,8 @@ from hal.base import (
 )
 
 BACKENDS = {
-    "sim": ("hal.sim", "SimBackend"),
-    "can": ("hal.can_backend", "CanBackend"),
+    "sim": ("beamctl.hal.sim", "SimBackend"),
+    "can": ("beamctl.hal.can_backend", "CanBackend"),
 }
 
 

@@ -15,8 +15,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from hal.base import HalConfigurationError
-from hal.dbc import Contract
+from beamctl.hal.base import HalConfigurationError
+from beamctl.hal.dbc import Contract
 
 LIMIT = 0.80
 

@@ -19,9 +19,9 @@ from pathlib import Path
 import can
 import numpy as np
 
-from hal.base import HalBase, HalConfigurationError, HalConnectionLost, HalProtocolError, Sample
-from hal.budget import check_budget
-from hal.dbc import STRAIN_SIGNALS, VOLTAGE_SIGNALS, Contract
+from beamctl.hal.base import HalBase, HalConfigurationError, HalConnectionLost, HalProtocolError, Sample
+from beamctl.hal.budget import check_budget
+from beamctl.hal.dbc import STRAIN_SIGNALS, VOLTAGE_SIGNALS, Contract
 
 CAN_ERR_BUSOFF = 0x40          # SocketCAN error class bit in an error frame's identifier
 LOAD_SILENCE_DIVISORS = 5      # load frames that may be missed before the load counts as stale

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from models.schema import boolean, choice, merge, number, number_list, path, positive, text, validate
+from beamctl.models.schema import boolean, choice, merge, number, number_list, path, positive, text, validate
 
 HAL_DEFAULTS: dict[str, Any] = {
     "backend": "sim",

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import cantools
 
-from hal.base import HalConfigurationError
+from beamctl.hal.base import HalConfigurationError
 
 STRAIN_SIGNALS = ("strain_y1", "strain_z1", "strain_y2", "strain_z2")
 VOLTAGE_SIGNALS = ("voltage_a1", "voltage_a2", "voltage_a3", "voltage_b1", "voltage_b2", "voltage_b3")
@@ -27,7 +27,7 @@ DEFAULT_DBC = "beamctl.dbc"
 
 
 def default_dbc_path() -> Path:
-    return Path(str(resources.files("hal") / DEFAULT_DBC))
+    return Path(str(resources.files("beamctl.hal") / DEFAULT_DBC))
 
 
 @dataclass(frozen=True)

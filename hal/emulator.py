@@ -16,9 +16,9 @@ import time
 import can
 import numpy as np
 
-from hal.dbc import STRAIN_SIGNALS, VOLTAGE_SIGNALS, Contract
-from models.actuators import StackGeometry
-from models.plant import Plant
+from beamctl.hal.dbc import STRAIN_SIGNALS, VOLTAGE_SIGNALS, Contract
+from beamctl.models.actuators import StackGeometry
+from beamctl.models.plant import Plant
 
 PACES = ("wallclock", "lockstep")
 

@@ -12,9 +12,9 @@ import time
 
 import numpy as np
 
-from hal.base import HalBase, HalConfigurationError, Sample
-from models.actuators import StackGeometry
-from models.plant import Plant
+from beamctl.hal.base import HalBase, HalConfigurationError, Sample
+from beamctl.models.actuators import StackGeometry
+from beamctl.models.plant import Plant
 
 PACES = ("simulated", "wallclock")
 

@@ -3,17 +3,17 @@
 Knows nothing about time or I/O beyond the sampled plant of ``models.plant``.
 """
 
-from models.analysis import (
+from beamctl.models.analysis import (
     buckling_mode,
     critical_load,
     eigenfrequencies,
     fe_frequency_response,
     state_space,
 )
-from models.fe import FEModel, build_model
-from models.modal import ModalModel, reduce
-from models.params import ModelParameters, load_parameters, parameters_from_dict
-from models.schema import ConfigError
+from beamctl.models.fe import FEModel, build_model
+from beamctl.models.modal import ModalModel, reduce
+from beamctl.models.params import ModelParameters, load_parameters, parameters_from_dict
+from beamctl.models.schema import ConfigError
 
 __all__ = [
     "ConfigError",

@@ -8,7 +8,7 @@ from collections.abc import Sequence
 import numpy as np
 import scipy.linalg as sla
 
-from models.fe import DOF_PER_NODE, PLANE_DOFS, FEModel, Plane, dof, plane_eigen, plane_indices
+from beamctl.models.fe import DOF_PER_NODE, PLANE_DOFS, FEModel, Plane, dof, plane_eigen, plane_indices
 
 # (states, inputs, outputs) of the y and z bending planes in the 4-input, 4-output systems
 PLANE_IO = {"y": (0, 2), "z": (1, 3)}

@@ -14,7 +14,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from models.schema import (
+from beamctl.models.schema import (
     ConfigError,
     integer,
     merge,
@@ -133,7 +133,7 @@ class ModelParameters:
 
 def default_dict() -> dict[str, Any]:
     """The shipped defaults (``models/paper.yaml``) as a plain dict."""
-    with resources.as_file(resources.files("models") / PAPER_YAML) as path:
+    with resources.as_file(resources.files("beamctl.models") / PAPER_YAML) as path:
         return read_yaml(path)
 
 

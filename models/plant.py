@@ -34,8 +34,8 @@ from typing import Any
 import numpy as np
 import scipy.linalg as sla
 
-from models.analysis import buckling_mode
-from models.fe import (
+from beamctl.models.analysis import buckling_mode
+from beamctl.models.fe import (
     PHI_Y,
     PHI_Z,
     PLANE_DOFS,
@@ -45,7 +45,7 @@ from models.fe import (
     plane_eigen,
     plane_indices,
 )
-from models.schema import (
+from beamctl.models.schema import (
     integer,
     merge,
     nonnegative,

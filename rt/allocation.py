@@ -17,8 +17,8 @@ import math
 
 import numpy as np
 
-from models.actuators import STACKS, StackGeometry
-from rt.config import Actuators
+from beamctl.models.actuators import STACKS, StackGeometry
+from beamctl.rt.config import Actuators
 
 
 def geometry(actuators: Actuators) -> StackGeometry:

@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from models.schema import (
+from beamctl.models.schema import (
     ConfigError,
     boolean,
     choice,

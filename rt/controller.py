@@ -21,13 +21,13 @@ import math
 
 import numpy as np
 
-from gains.discrete import velocity_filter
-from gains.schedule import GainSchedule
-from gains.table import GainTable
-from hal.base import Sample
-from rt.allocation import Allocator
-from rt.config import ControllerConfig
-from rt.safety import Fault, State, Supervisor, TransitionError
+from beamctl.gains.discrete import velocity_filter
+from beamctl.gains.schedule import GainSchedule
+from beamctl.gains.table import GainTable
+from beamctl.hal.base import Sample
+from beamctl.rt.allocation import Allocator
+from beamctl.rt.config import ControllerConfig
+from beamctl.rt.safety import Fault, State, Supervisor, TransitionError
 
 RECORD_COLUMNS = (
     ["time_s", "sequence", "state", "fault", "flags"]

@@ -20,12 +20,12 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from hal.base import HalBase, HalError, HalStaleData
-from rt import realtime
-from rt.controller import I_FAULT, I_FLAGS, I_STATE, I_STEP_US, Controller
-from rt.safety import Fault, State
-from rt.telemetry import TelemetryWriter
-from rt.timing import LoopTiming
+from beamctl.hal.base import HalBase, HalError, HalStaleData
+from beamctl.rt import realtime
+from beamctl.rt.controller import I_FAULT, I_FLAGS, I_STATE, I_STEP_US, Controller
+from beamctl.rt.safety import Fault, State
+from beamctl.rt.telemetry import TelemetryWriter
+from beamctl.rt.timing import LoopTiming
 
 
 @dataclass

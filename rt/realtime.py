@@ -9,7 +9,7 @@ import ctypes.util
 import gc
 import os
 
-from rt.config import Realtime
+from beamctl.rt.config import Realtime
 
 MCL_CURRENT, MCL_FUTURE = 1, 2
 MCL_NONE = 0

@@ -53,7 +53,7 @@ class TelemetryWriter:
     @classmethod
     def for_controller(cls, path: str | Path, controller, meta: dict | None = None) -> TelemetryWriter:
         """A writer for a controller's records, sized by its ``telemetry`` settings."""
-        from rt.controller import RECORD_COLUMNS
+        from beamctl.rt.controller import RECORD_COLUMNS
 
         settings = controller.config.telemetry
         return cls(path, RECORD_COLUMNS, capacity=int(settings.buffer_time * controller.sample_rate_hz),

@@ -2,8 +2,8 @@
 
 import pytest
 
-import tools  # noqa: F401  (single-threaded BLAS as beamctl runs it; before numpy loads)
-from models import build_model, load_parameters, reduce
+import beamctl.tools  # noqa: F401  (single-threaded BLAS as beamctl runs it; before numpy loads)
+from beamctl.models import build_model, load_parameters, reduce
 
 
 @pytest.fixture(scope="session")

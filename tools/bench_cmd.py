@@ -10,12 +10,12 @@ import time
 
 import numpy as np
 
-from gains.defaults import default_table_path
-from gains.table import load_table
-from hal.base import Sample
-from rt.config import controller_config
-from rt.controller import Controller
-from tools.argtypes import steps
+from beamctl.gains.defaults import default_table_path
+from beamctl.gains.table import load_table
+from beamctl.hal.base import Sample
+from beamctl.rt.config import controller_config
+from beamctl.rt.controller import Controller
+from beamctl.tools.argtypes import steps
 
 
 def percentiles_us(seconds: np.ndarray) -> dict:
@@ -58,13 +58,13 @@ def can_latency(samples: int = 5000) -> dict:
     over python-can's virtual bus (both in this process, emulator in lockstep)."""
     import can
 
-    from hal.budget import bus_budget
-    from hal.can_backend import CanBackend
-    from hal.emulator import CanPlantEmulator
-    from models import build_model
-    from models.plant import Plant, plant_config
-    from rt.allocation import geometry
-    from rt.loop import ControlLoop
+    from beamctl.hal.budget import bus_budget
+    from beamctl.hal.can_backend import CanBackend
+    from beamctl.hal.emulator import CanPlantEmulator
+    from beamctl.models import build_model
+    from beamctl.models.plant import Plant, plant_config
+    from beamctl.rt.allocation import geometry
+    from beamctl.rt.loop import ControlLoop
 
     table = load_table(default_table_path())
     config = controller_config({"pacing": "sample"})
@@ -100,7 +100,7 @@ def sim_realtime_factor() -> dict:
     import tempfile
     from pathlib import Path
 
-    from tools.experiment import experiment_config, run_mode
+    from beamctl.tools.experiment import experiment_config, run_mode
 
     cfg, settings = experiment_config()
     with tempfile.TemporaryDirectory() as tmp:
@@ -110,8 +110,8 @@ def sim_realtime_factor() -> dict:
 
 def gains_build_time() -> float:
     """Seconds to build the default table: 81 LQR designs and 161 closed-loop checks."""
-    from gains.build import build_table
-    from models import build_model
+    from beamctl.gains.build import build_table
+    from beamctl.models import build_model
 
     model = build_model(load_table(default_table_path()).model_parameters)
     start = time.perf_counter()

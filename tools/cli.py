@@ -5,14 +5,16 @@ from __future__ import annotations
 import argparse
 import sys
 
-from models.schema import ConfigError
-from tools import bench_cmd, experiment_cmd, gains_cmd, log_cmd, model_cmd, plant_cmd, run_cmd
+from beamctl.gains.build import tool_version
+from beamctl.models.schema import ConfigError
+from beamctl.tools import bench_cmd, experiment_cmd, gains_cmd, log_cmd, model_cmd, plant_cmd, run_cmd
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="beamctl",
         description="Active buckling control of a beam-column with piezo-elastic supports.")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {tool_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     experiment_cmd.add_parser(sub)
     model_cmd.add_parser(sub)

@@ -27,16 +27,16 @@ from pathlib import Path
 
 import numpy as np
 
-from gains.build import build_table
-from gains.table import GainTable
-from hal.sim import SimBackend
-from models import build_model, critical_load, reduce
-from models.analysis import lateral_displacements
-from models.schema import boolean, merge, positive, read_yaml, validate
-from rt.controller import Controller
-from rt.loop import ControlLoop
-from rt.telemetry import TelemetryWriter
-from tools.service import (
+from beamctl.gains.build import build_table
+from beamctl.gains.table import GainTable
+from beamctl.hal.sim import SimBackend
+from beamctl.models import build_model, critical_load, reduce
+from beamctl.models.analysis import lateral_displacements
+from beamctl.models.schema import boolean, merge, positive, read_yaml, validate
+from beamctl.rt.controller import Controller
+from beamctl.rt.loop import ControlLoop
+from beamctl.rt.telemetry import TelemetryWriter
+from beamctl.tools.service import (
     ServiceConfig,
     build_plant,
     load_gain_table,

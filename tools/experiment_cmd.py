@@ -7,8 +7,8 @@ import json
 import time
 from pathlib import Path
 
-from tools.experiment import load_experiment_config, run_experiment
-from tools.progress import ProgressBar
+from beamctl.tools.experiment import load_experiment_config, run_experiment
+from beamctl.tools.progress import ProgressBar
 
 PAPER = {"uncontrolled": {"load_at_0.5mm_N": 2438.0, "load_at_1.0mm_N": 2723.0, "buckling_angle_deg": 234.0},
          "controlled": {"load_at_1.0mm_N": 3223.0, "buckling_angle_deg": 128.0}}
@@ -57,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
     summary, traces = run_experiment(cfg, settings, out, progress=bar)
     bar.close()
     summary["wall_time_s"] = time.monotonic() - start
-    from tools import plots
+    from beamctl.tools import plots
 
     figures = plots.experiment_figures(summary, traces, out)
     table = summary_table(summary)

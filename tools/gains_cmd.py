@@ -8,12 +8,12 @@ from pathlib import Path
 
 import numpy as np
 
-from gains.build import build_table, closed_loop_checks
-from gains.defaults import default_table_path
-from gains.table import GainTable, load_table, write_table
-from models import build_model, load_parameters
-from models.schema import ConfigError
-from tools.progress import ProgressBar
+from beamctl.gains.build import build_table, closed_loop_checks
+from beamctl.gains.defaults import default_table_path
+from beamctl.gains.table import GainTable, load_table, write_table
+from beamctl.models import build_model, load_parameters
+from beamctl.models.schema import ConfigError
+from beamctl.tools.progress import ProgressBar
 
 
 def parse_grid(text: str) -> np.ndarray:
@@ -127,7 +127,7 @@ def run_show(args: argparse.Namespace) -> int:
     for i in range(0, len(table.loads_n), step):
         print(f"{table.loads_n[i]:8.0f} " + " ".join(f"{table.gains[i, 0, c]:11.4g}" for c in cols))
     if args.plot:
-        from tools import plots
+        from beamctl.tools import plots
 
         path = plots.gains_vs_load(table, Path(args.plot) / "gains_vs_load.png")
         print(f"\nwrote {path}")

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from rt.telemetry import TelemetryError, export, read_telemetry
+from beamctl.rt.telemetry import TelemetryError, export, read_telemetry
 
 
 def add_parser(sub) -> None:
@@ -36,7 +36,7 @@ def run_export(args: argparse.Namespace) -> int:
 
 
 def run_plot(args: argparse.Namespace) -> int:
-    from tools import plots
+    from beamctl.tools import plots
 
     try:
         header, rows = read_telemetry(args.file)

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from models import build_model, critical_load, eigenfrequencies, load_parameters, reduce
-from models.fe import FEModel
-from models.modal import ModalModel
+from beamctl.models import build_model, critical_load, eigenfrequencies, load_parameters, reduce
+from beamctl.models.fe import FEModel
+from beamctl.models.modal import ModalModel
 
 TABLE_LOADS_N = (0, 500, 1000, 1500, 2000, 2500, 3000)
 FIGURE6_LOAD_N = 2000.0
@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         print_table(s, args.config or "paper defaults (models/paper.yaml)")
     if args.plot:
-        from tools import plots
+        from beamctl.tools import plots
 
         out = Path(args.plot)
         written = [

@@ -8,12 +8,12 @@ import signal
 import sys
 import threading
 
-from hal.base import HalConfigurationError
-from hal.budget import LIMIT, bus_budget
-from hal.dbc import Contract
-from models.schema import ConfigError
-from tools.argtypes import positive, seconds
-from tools.service import build_plant, load_gain_table, load_service_config, plant_geometry
+from beamctl.hal.base import HalConfigurationError
+from beamctl.hal.budget import LIMIT, bus_budget
+from beamctl.hal.dbc import Contract
+from beamctl.models.schema import ConfigError
+from beamctl.tools.argtypes import positive, seconds
+from beamctl.tools.service import build_plant, load_gain_table, load_service_config, plant_geometry
 
 
 def parse_can(text: str) -> tuple[str, str]:
@@ -45,7 +45,7 @@ def add_parser(sub) -> None:
 def run_plant(args: argparse.Namespace) -> int:
     import can
 
-    from hal.emulator import CanPlantEmulator
+    from beamctl.hal.emulator import CanPlantEmulator
 
     interface, channel = parse_can(args.can)
     cfg = load_service_config(args.config)

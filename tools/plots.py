@@ -6,10 +6,10 @@ from pathlib import Path
 
 import numpy as np
 
-from models import critical_load, eigenfrequencies, fe_frequency_response
-from models.fe import FEModel
-from models.modal import ModalModel
-from models.schema import ConfigError
+from beamctl.models import critical_load, eigenfrequencies, fe_frequency_response
+from beamctl.models.fe import FEModel
+from beamctl.models.modal import ModalModel
+from beamctl.models.schema import ConfigError
 
 
 def _pyplot():
@@ -110,7 +110,7 @@ def gains_vs_load(table, path: Path) -> Path:
     axes[0].set_ylabel("|K| (row Fay,A)")
     fcr = None
     try:
-        from models import build_model, critical_load
+        from beamctl.models import build_model, critical_load
 
         fcr = critical_load(build_model(table.model_parameters))
     except ConfigError:

@@ -17,15 +17,15 @@ import threading
 import time
 from pathlib import Path
 
-from hal.base import HalError
-from models.schema import ConfigError
-from rt import realtime
-from rt.controller import Controller
-from rt.loop import ControlLoop
-from rt.telemetry import TelemetryWriter
-from tools.argtypes import seconds
-from tools.sdnotify import Notifier
-from tools.service import build_hal, load_gain_table, load_service_config
+from beamctl.hal.base import HalError
+from beamctl.models.schema import ConfigError
+from beamctl.rt import realtime
+from beamctl.rt.controller import Controller
+from beamctl.rt.loop import ControlLoop
+from beamctl.rt.telemetry import TelemetryWriter
+from beamctl.tools.argtypes import seconds
+from beamctl.tools.sdnotify import Notifier
+from beamctl.tools.service import build_hal, load_gain_table, load_service_config
 
 
 def add_parser(sub) -> None:

@@ -18,17 +18,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from gains.defaults import default_table_path
-from gains.table import GainTable, load_table
-from hal.base import HalBase
-from hal.config import HalConfig, hal_config
-from models import build_model
-from models.actuators import StackGeometry
-from models.params import ModelParameters, parameters_from_dict
-from models.plant import Plant, plant_config
-from models.schema import ConfigError, merge, nonnegative, path, read_yaml, validate
-from rt.allocation import geometry
-from rt.config import ControllerConfig, controller_config
+from beamctl.gains.defaults import default_table_path
+from beamctl.gains.table import GainTable, load_table
+from beamctl.hal.base import HalBase
+from beamctl.hal.config import HalConfig, hal_config
+from beamctl.models import build_model
+from beamctl.models.actuators import StackGeometry
+from beamctl.models.params import ModelParameters, parameters_from_dict
+from beamctl.models.plant import Plant, plant_config
+from beamctl.models.schema import ConfigError, merge, nonnegative, path, read_yaml, validate
+from beamctl.rt.allocation import geometry
+from beamctl.rt.config import ControllerConfig, controller_config
 
 SECTIONS = ("model", "gains", "controller", "hal", "plant", "run")
 
@@ -122,10 +122,10 @@ def build_plant(cfg: ServiceConfig, table: GainTable, overrides: dict[str, Any] 
 def build_hal(cfg: ServiceConfig, table: GainTable, plant: Plant | None = None) -> HalBase:
     """The configured backend (not yet open). The sim backend gets ``plant`` (or builds one)."""
     if cfg.hal.backend == "sim":
-        from hal.sim import SimBackend
+        from beamctl.hal.sim import SimBackend
 
         return SimBackend(plant or build_plant(cfg, table), plant_geometry(cfg), pace=cfg.hal.sim["pace"])
-    from hal.can_backend import CanBackend
+    from beamctl.hal.can_backend import CanBackend
 
     c = cfg.hal.can
     return CanBackend(table.design.sample_rate_hz, c["interface"], c["channel"], bitrate=c["bitrate"],

@@ -5,9 +5,9 @@ import itertools
 import numpy as np
 import pytest
 
-from gains.defaults import default_table_path
-from gains.schedule import GainSchedule
-from gains.table import load_table
+from beamctl.gains.defaults import default_table_path
+from beamctl.gains.schedule import GainSchedule
+from beamctl.gains.table import load_table
 
 
 @pytest.mark.parametrize("mode", ["interpolate", "paper"])

@@ -1,6 +1,6 @@
 """Benchmarks of the model (run with ``pytest tests/benchmarks --benchmark-enable``)."""
 
-from models import build_model, critical_load, load_parameters
+from beamctl.models import build_model, critical_load, load_parameters
 
 
 def test_build_default_model_and_its_critical_load(benchmark):

@@ -4,11 +4,11 @@ import itertools
 
 import numpy as np
 
-from gains.defaults import default_table_path
-from gains.table import load_table
-from hal.base import Sample
-from rt.config import controller_config
-from rt.controller import Controller
+from beamctl.gains.defaults import default_table_path
+from beamctl.gains.table import load_table
+from beamctl.hal.base import Sample
+from beamctl.rt.config import controller_config
+from beamctl.rt.controller import Controller
 
 
 def test_control_step(benchmark):

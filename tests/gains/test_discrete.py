@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from gains.defaults import DEFAULT_DESIGN
-from gains.discrete import check_load, velocity_filter
-from gains.lqr import lqr_gain
+from beamctl.gains.defaults import DEFAULT_DESIGN
+from beamctl.gains.discrete import check_load, velocity_filter
+from beamctl.gains.lqr import lqr_gain
 
 
 @pytest.mark.parametrize("freq", [2.0, 5.0, 14.55])

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from gains.defaults import DEFAULT_WEIGHTS
-from gains.lqr import augmented_system, lqr_gain
+from beamctl.gains.defaults import DEFAULT_WEIGHTS
+from beamctl.gains.lqr import augmented_system, lqr_gain
 
 control = pytest.importorskip("control")
 

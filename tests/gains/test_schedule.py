@@ -5,9 +5,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from gains.build import build_table
-from gains.schedule import GainSchedule
-from gains.table import ScheduleSettings
+from beamctl.gains.build import build_table
+from beamctl.gains.schedule import GainSchedule
+from beamctl.gains.table import ScheduleSettings
 
 
 @pytest.fixture(scope="module")

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import yaml
 
-from gains.build import build_table, check_points, closed_loop_checks
-from gains.defaults import default_table_path
-from gains.table import GainTableError, load_table, write_table
-from models import build_model, parameters_from_dict
+from beamctl.gains.build import build_table, check_points, closed_loop_checks
+from beamctl.gains.defaults import default_table_path
+from beamctl.gains.table import GainTableError, load_table, write_table
+from beamctl.models import build_model, parameters_from_dict
 
 
 @pytest.fixture(scope="module")

@@ -7,15 +7,15 @@ import itertools
 
 import can
 
-from gains.defaults import default_table_path
-from gains.table import load_table
-from hal.can_backend import CanBackend
-from hal.emulator import CanPlantEmulator
-from hal.sim import SimBackend
-from models import build_model
-from models.plant import Plant, plant_config
-from rt.allocation import geometry
-from rt.config import controller_config
+from beamctl.gains.defaults import default_table_path
+from beamctl.gains.table import load_table
+from beamctl.hal.can_backend import CanBackend
+from beamctl.hal.emulator import CanPlantEmulator
+from beamctl.hal.sim import SimBackend
+from beamctl.models import build_model
+from beamctl.models.plant import Plant, plant_config
+from beamctl.rt.allocation import geometry
+from beamctl.rt.config import controller_config
 
 _channels = itertools.count()
 TABLE = load_table(default_table_path())

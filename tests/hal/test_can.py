@@ -11,11 +11,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import hal
-from hal.base import HalConfigurationError, HalConnectionLost, HalStaleData
-from hal.budget import bus_budget, check_budget, classic_frame_bits, fd_frame_time
-from hal.can_backend import CanBackend
-from hal.dbc import Contract, default_dbc_path
+from beamctl import hal
+from beamctl.hal.base import HalConfigurationError, HalConnectionLost, HalStaleData
+from beamctl.hal.budget import bus_budget, check_budget, classic_frame_bits, fd_frame_time
+from beamctl.hal.can_backend import CanBackend
+from beamctl.hal.dbc import Contract, default_dbc_path
 
 CONTRACT = Contract()
 
@@ -186,12 +186,13 @@ def test_default_frames_fit_classic_can_at_2500_hz_and_the_limit_is_said():
     assert fd.max_sample_rate_hz > 6000
 
 
-def test_unknown_backend_is_refused_and_the_sim_never_loads_a_can_library():
+def test_unknown_backend_is_refused_and_the_sim_never_loads_a_can_library(tmp_path):
     with pytest.raises(HalConfigurationError, match="unknown HAL backend 'daq'"):
         hal.create("daq")
-    code = "import sys, hal; hal.backend_class('sim'); print('can' in sys.modules, 'cantools' in sys.modules)"
+    code = ("import sys; from beamctl import hal; hal.backend_class('sim'); "
+            "print('can' in sys.modules, 'cantools' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                         cwd=Path(__file__).resolve().parents[2])
+                         cwd=tmp_path)
     assert out.stdout.split() == ["False", "False"], out.stdout
 
 

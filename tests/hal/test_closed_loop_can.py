@@ -5,10 +5,10 @@ import time
 
 import numpy as np
 
-from rt.config import controller_config
-from rt.controller import Controller
-from rt.loop import ControlLoop
-from rt.safety import Fault, State
+from beamctl.rt.config import controller_config
+from beamctl.rt.controller import Controller
+from beamctl.rt.loop import ControlLoop
+from beamctl.rt.safety import Fault, State
 from tests.hal.rigs import TABLE, CanRig
 
 

@@ -6,7 +6,7 @@ import time
 import numpy as np
 import pytest
 
-from hal.base import HalConnectionLost, HalStaleData
+from beamctl.hal.base import HalConnectionLost, HalStaleData
 from tests.hal.rigs import GEOMETRY, RIGS
 
 STRAIN_LSB = 5e-7      # DBC resolution of the strains

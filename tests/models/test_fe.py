@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
-from models import critical_load, eigenfrequencies, fe_frequency_response, state_space
-from models.analysis import buckling_mode, eigenvalues
-from models.fe import (
+from beamctl.models import critical_load, eigenfrequencies, fe_frequency_response, state_space
+from beamctl.models.analysis import buckling_mode, eigenvalues
+from beamctl.models.fe import (
     DOF_PER_NODE,
     PHI_Y,
     PHI_Z,

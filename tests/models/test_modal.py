@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from models import ConfigError, critical_load, eigenfrequencies, reduce, state_space
-from models.analysis import fe_plane_blocks
-from models.fe import DOF_PER_NODE, V, W
+from beamctl.models import ConfigError, critical_load, eigenfrequencies, reduce, state_space
+from beamctl.models.analysis import fe_plane_blocks
+from beamctl.models.fe import DOF_PER_NODE, V, W
 
 
 def _resonances_hz(a: np.ndarray, count: int) -> np.ndarray:
@@ -55,7 +55,7 @@ def test_reduced_critical_load_is_close_to_the_full_model(paper_model, paper_red
 def test_unloaded_modes_describe_the_loaded_beam_worse():
     """Why the shipped reference load is not 0 N: the unloaded modes overestimate f1 at 2000 N
     by more than 1 % and the critical load by more than 2 %."""
-    from models import build_model, load_parameters
+    from beamctl.models import build_model, load_parameters
 
     model = build_model(load_parameters())
     unloaded = reduce(model, reference_load=0.0)
@@ -74,7 +74,7 @@ def test_modal_displacements_are_recovered_from_strains(paper_model, paper_reduc
 
 def test_reduced_and_full_frequency_responses_peak_together(paper_model, paper_reduced):
     """Figure 6: the resonance peaks of |Gy| coincide at 2000 N."""
-    from models import fe_frequency_response
+    from beamctl.models import fe_frequency_response
 
     freqs = np.linspace(1.0, 1200.0, 4800)
     full = np.abs(fe_frequency_response(paper_model, 2000.0, freqs)[:, 0, 0])

@@ -4,7 +4,7 @@ import math
 
 import pytest
 
-from models import ConfigError, build_model, load_parameters, parameters_from_dict, reduce
+from beamctl.models import ConfigError, build_model, load_parameters, parameters_from_dict, reduce
 
 
 def test_defaults_are_table_1_of_the_paper(paper_params):

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from models import ConfigError, critical_load, eigenfrequencies
-from models.plant import LoadRamp, Plant, load_plant_config, plant_config
+from beamctl.models import ConfigError, critical_load, eigenfrequencies
+from beamctl.models.plant import LoadRamp, Plant, load_plant_config, plant_config
 
 ZERO = np.zeros(4)
 

@@ -7,7 +7,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from hal.base import HalBase, HalConnectionLost, Sample
+from beamctl.hal.base import HalBase, HalConnectionLost, Sample
 
 # what a script step can be: a (strains, load) pair, None (no sample within the time-out),
 # an exception instance (raised from read), or a callable run before producing a sample

@@ -6,8 +6,8 @@ import numpy as np
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from rt.allocation import Allocator
-from rt.config import Actuators
+from beamctl.rt.allocation import Allocator
+from beamctl.rt.config import Actuators
 
 any_float = st.floats(allow_nan=True, allow_infinity=True, width=64)
 force = st.floats(min_value=-1e4, max_value=1e4, allow_nan=False)

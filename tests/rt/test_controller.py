@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import scipy.signal
 
-from gains.defaults import default_table_path
-from gains.table import load_table
-from hal.base import Sample
-from rt.config import controller_config
-from rt.controller import FLAG_INTEGRATOR_HELD, Controller
-from rt.safety import Fault, State, TransitionError
+from beamctl.gains.defaults import default_table_path
+from beamctl.gains.table import load_table
+from beamctl.hal.base import Sample
+from beamctl.rt.config import controller_config
+from beamctl.rt.controller import FLAG_INTEGRATOR_HELD, Controller
+from beamctl.rt.safety import Fault, State, TransitionError
 
 
 @pytest.fixture(scope="module")

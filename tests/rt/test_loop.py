@@ -11,14 +11,14 @@ import time
 import numpy as np
 import pytest
 
-from gains.defaults import default_table_path
-from gains.table import load_table
-from hal.base import HalConnectionLost
-from rt.config import controller_config
-from rt.controller import COL, RECORD_COLUMNS, Controller
-from rt.loop import ControlLoop
-from rt.safety import Fault, State
-from rt.telemetry import TelemetryWriter, read_telemetry
+from beamctl.gains.defaults import default_table_path
+from beamctl.gains.table import load_table
+from beamctl.hal.base import HalConnectionLost
+from beamctl.rt.config import controller_config
+from beamctl.rt.controller import COL, RECORD_COLUMNS, Controller
+from beamctl.rt.loop import ControlLoop
+from beamctl.rt.safety import Fault, State
+from beamctl.rt.telemetry import TelemetryWriter, read_telemetry
 from tests.rt.fakes import ScriptedHal
 
 DEFLECTED = ((8e-5, -4e-5, 3e-5, 1e-5), 1500.0)
@@ -167,7 +167,7 @@ def test_telemetry_survives_kill_9_up_to_the_last_flush(tmp_path):
     path = tmp_path / "killed.btl"
     script = textwrap.dedent(f"""
         import time, numpy as np
-        from rt.telemetry import TelemetryWriter
+        from beamctl.rt.telemetry import TelemetryWriter
         w = TelemetryWriter({str(path)!r}, ["t", "x"], capacity=100000, flush_interval=0.25).start()
         start = time.monotonic()
         print("started", flush=True)
@@ -177,7 +177,7 @@ def test_telemetry_survives_kill_9_up_to_the_last_flush(tmp_path):
             time.sleep(0.0004)
     """)
     proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True,
-                            cwd=os.path.dirname(os.path.dirname(os.path.dirname(__file__))))
+                            cwd=tmp_path)
     try:
         assert proc.stdout.readline().strip() == "started"
         time.sleep(1.5)

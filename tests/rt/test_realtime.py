@@ -5,8 +5,8 @@ import os
 
 import pytest
 
-from rt import realtime
-from rt.config import controller_config
+from beamctl.rt import realtime
+from beamctl.rt.config import controller_config
 
 
 def test_refused_privileges_are_reported_and_the_run_goes_on(monkeypatch):

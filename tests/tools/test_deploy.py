@@ -3,7 +3,7 @@
 import configparser
 from pathlib import Path
 
-from tools.service import load_service_config
+from beamctl.tools.service import load_service_config
 
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
 

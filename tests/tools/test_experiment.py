@@ -5,10 +5,10 @@ import json
 
 import pytest
 
-from models.schema import ConfigError
-from rt.telemetry import read_telemetry
-from tools.cli import main
-from tools.experiment import BOW_AMPLITUDE_M, experiment_config
+from beamctl.models.schema import ConfigError
+from beamctl.rt.telemetry import read_telemetry
+from beamctl.tools.cli import main
+from beamctl.tools.experiment import BOW_AMPLITUDE_M, experiment_config
 
 CRITICAL_LOAD_N = 3193.5
 
@@ -95,6 +95,6 @@ def test_bad_scenario_is_refused_naming_the_key(tmp_path, capsys, data, key):
     assert key in capsys.readouterr().err
     with pytest.raises(ConfigError):
         cfg, _ = experiment_config(data)
-        from tools.service import build_plant, load_gain_table
+        from beamctl.tools.service import build_plant, load_gain_table
 
         build_plant(cfg, load_gain_table(cfg))

@@ -4,9 +4,9 @@ import json
 
 import pytest
 
-from gains.table import load_table
-from tools.cli import main
-from tools.gains_cmd import parse_grid
+from beamctl.gains.table import load_table
+from beamctl.tools.cli import main
+from beamctl.tools.gains_cmd import parse_grid
 
 
 def test_build_writes_a_checked_table_and_shows_progress(tmp_path, capsys, paper_params):

@@ -4,15 +4,15 @@ import numpy as np
 import pytest
 import scipy.io
 
-from gains.defaults import default_table_path
-from gains.table import load_table
-from rt.config import controller_config
-from rt.controller import RECORD_COLUMNS, Controller
-from rt.loop import ControlLoop
-from rt.telemetry import TelemetryWriter, read_telemetry
+from beamctl.gains.defaults import default_table_path
+from beamctl.gains.table import load_table
+from beamctl.rt.config import controller_config
+from beamctl.rt.controller import RECORD_COLUMNS, Controller
+from beamctl.rt.loop import ControlLoop
+from beamctl.rt.telemetry import TelemetryWriter, read_telemetry
+from beamctl.tools.cli import main
 from tests.rt.fakes import ScriptedHal
 from tests.rt.test_loop import oscillating
-from tools.cli import main
 
 
 @pytest.fixture(scope="module")

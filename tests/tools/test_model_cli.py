@@ -5,7 +5,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from tools.cli import main
+from beamctl.tools.cli import main
 
 
 def test_json_reports_critical_load_and_eigenfrequencies_by_load(capsys):

@@ -5,8 +5,8 @@ import threading
 import numpy as np
 import pytest
 
-from hal.can_backend import CanBackend
-from tools.cli import main
+from beamctl.hal.can_backend import CanBackend
+from beamctl.tools.cli import main
 
 
 def test_plant_command_plays_the_daq_for_a_controller(capsys):

@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 import yaml
 
-from hal.emulator import CanPlantEmulator
-from rt.controller import COL
-from rt.telemetry import read_telemetry
+from beamctl.hal.emulator import CanPlantEmulator
+from beamctl.rt.controller import COL
+from beamctl.rt.telemetry import read_telemetry
+from beamctl.tools.cli import main
 from tests.hal.rigs import GEOMETRY, make_plant
-from tools.cli import main
 
 
 def _config(tmp_path, **sections):
