@@ -6,9 +6,10 @@ value (a sample is only produced once a load value has arrived, and the load mus
 coming). A frame with an unknown identifier, the wrong length, a value outside the DBC
 range, or an error frame never reaches the controller; each is counted, as are sequence
 gaps. A bus-off error frame is a lost connection.
-Send: ``CTRL_Voltages`` on every write, ``CTRL_Status`` (state, fault, flags) every
-``SampleDivisor`` writes. Optionally all traffic is recorded with python-can's loggers
-(``.asc`` or ``.blf``, by the file suffix).
+Send: ``CTRL_Voltages`` on every write, its ``sequence`` the low four bits of the sequence of
+the latest sample delivered (the sample these voltages answer, so the DAQ can pair them);
+``CTRL_Status`` (state, fault, flags) every ``SampleDivisor`` writes. Optionally all traffic
+is recorded with python-can's loggers (``.asc`` or ``.blf``, by the file suffix).
 """
 
 from __future__ import annotations
@@ -75,7 +76,7 @@ class CanBackend(HalBase):
         self._last_load_seq = None
         self._load = None
         self._samples_since_load = 0
-        self._voltage_seq = 0
+        self._answered_seq = 0      # sequence of the latest sample delivered by read()
         self._writes = 0
         self._window_count = 0
         self._window_start = None
@@ -155,6 +156,7 @@ class CanBackend(HalBase):
                 sample.axial_load = self._load
                 sample.sequence = seq
                 sample.timestamp = msg.timestamp
+                self._answered_seq = seq
                 return True
             if frame_id == self._load_id:
                 if msg.dlc != c.load.length:
@@ -207,13 +209,12 @@ class CanBackend(HalBase):
         values = self._voltage_values
         for k, i in enumerate(self._voltage_order):
             values[i] = float(voltages[k])
-        values[self._voltage_seq_index] = self._voltage_seq
+        values[self._voltage_seq_index] = self._answered_seq & 0xF
         try:
             data = c.voltages.encode(values)
         except ValueError as exc:
             raise HalProtocolError(f"can: {exc}") from None
         self._send(c.voltages.frame_id, data)
-        self._voltage_seq = (self._voltage_seq + 1) & 0xF
         self._writes += 1
         if self._writes % self._status_divisor == 0:
             s = self._status_values

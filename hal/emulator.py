@@ -4,14 +4,18 @@ Each sample it sends ``DAQ_Strains`` (and every ``SampleDivisor`` samples ``DAQ_
 then applies the latest ``CTRL_Voltages`` it received and advances the plant one sample.
 ``wallclock`` pace sends at the sample rate of the wall clock, as the DAQ does; ``lockstep``
 waits for the controller's answer to each sample before stepping (for tests and bench runs
-that must not depend on the machine's load). Run it in a thread (tests, over python-can's
-``virtual`` interface) or as its own process: ``beamctl plant --can socketcan:vcan0``.
+that must not depend on the machine's load: however late the answer, the plant applies it to
+the sample it answers). Run it in a thread (tests, over python-can's ``virtual`` interface) or
+as its own process: ``beamctl plant --can socketcan:vcan0``. ``on_step(plant, voltages)`` is
+called in the emulator's own thread after every plant step, with the voltages the stacks had
+during that step: the one consistent place to observe the plant while it runs.
 """
 
 from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 
 import can
 import numpy as np
@@ -21,12 +25,14 @@ from beamctl.models.actuators import StackGeometry
 from beamctl.models.plant import Plant
 
 PACES = ("wallclock", "lockstep")
+WAIT_SLICE_S = 0.05        # a lockstep wait looks at the stop request this often
 
 
 class CanPlantEmulator:
     def __init__(self, bus: can.BusABC, plant: Plant, geometry: StackGeometry,
                  contract: Contract | None = None, pace: str = "wallclock",
-                 answer_timeout: float = 0.05, latency_samples: int = 0) -> None:
+                 answer_timeout: float = 0.05, latency_samples: int = 0,
+                 on_step: Callable[[Plant, np.ndarray], None] | None = None) -> None:
         if pace not in PACES:
             raise ValueError(f"emulator pace {pace!r}: expected one of {PACES}")
         self.bus = bus
@@ -35,6 +41,7 @@ class CanPlantEmulator:
         self.contract = contract or Contract()
         self.pace = pace
         self.answer_timeout = answer_timeout
+        self.on_step = on_step
         self.period = plant.config.sample_period
         self._force_matrix = geometry.force_matrix()
         self._voltages = np.full(6, geometry.bias_voltage)
@@ -42,6 +49,7 @@ class CanPlantEmulator:
         self._decoded = [0.0] * len(self.contract.voltages.names)
         c = self.contract
         self._voltage_order = c.voltages.order(VOLTAGE_SIGNALS)
+        self._voltage_sequence = c.voltages.index("sequence")
         self._strain_order = c.strains.order(STRAIN_SIGNALS)
         self._strain_values = [0.0] * len(c.strains.names)
         self._load_values = [0.0] * len(c.load.names)
@@ -59,40 +67,59 @@ class CanPlantEmulator:
     def _send_sample(self) -> None:
         c = self.contract
         strains, load = self.plant.measure()
+        if self.samples % c.load.divisor == 0:   # the load first: the sample then carries it
+            lv = self._load_values
+            lv[c.load.index("axial_load")] = min(max(load, -500.0), 6000.0)
+            lv[c.load.index("sequence")] = (self.samples // c.load.divisor) & 0xFF
+            self.bus.send(can.Message(arbitration_id=c.load.frame_id, data=c.load.encode(lv),
+                                      is_extended_id=False))
         v = self._strain_values
         for k, i in enumerate(self._strain_order):
             v[i] = min(max(float(strains[k]), -0.004), 0.004)
         v[c.strains.index("sequence")] = self.samples & 0xFF
         self.bus.send(can.Message(arbitration_id=c.strains.frame_id, data=c.strains.encode(v),
                                   is_extended_id=False))
-        if self.samples % c.load.divisor == 0:
-            lv = self._load_values
-            lv[c.load.index("axial_load")] = min(max(load, -500.0), 6000.0)
-            lv[c.load.index("sequence")] = (self.samples // c.load.divisor) & 0xFF
-            self.bus.send(can.Message(arbitration_id=c.load.frame_id, data=c.load.encode(lv),
-                                      is_extended_id=False))
 
-    def _take(self, msg: can.Message) -> bool:
-        """Apply a received frame; True for a voltage frame."""
+    def _take(self, msg: can.Message) -> int | None:
+        """Apply a received frame; for a voltage frame, return its sequence (the low four bits
+        of the sample it answers), else None."""
         c = self.contract
         if msg.is_error_frame:
-            return False
+            return None
         if msg.arbitration_id == c.voltages.frame_id and msg.dlc == c.voltages.length:
             if c.voltages.decode_into(msg.data, self._decoded):
                 for k, i in enumerate(self._voltage_order):
                     self._voltages[k] = self._decoded[i]
                 self.voltage_frames += 1
-                return True
+                return int(self._decoded[self._voltage_sequence])
         elif msg.arbitration_id == c.status.frame_id:
             self.status_frames += 1
             values = [0] * len(c.status.names)
             c.status.decode_into(msg.data, values)
             self.last_state = int(values[c.status.index("state")])
-        return False
+        return None
 
     def _step_plant(self) -> None:
         self.plant.step(self._force_matrix @ (self._voltages - self._bias))
         self.samples += 1
+        if self.on_step is not None:
+            self.on_step(self.plant, self._voltages)
+
+    def _await_answer(self) -> bool:
+        """Lockstep: take frames until the voltage frame answering the sample just sent (True),
+        or until ``answer_timeout`` or a stop request (False). A late answer to an earlier
+        sample is applied (the stacks take the latest voltages) but does not end the wait."""
+        expected = self.samples & 0xF
+        deadline = time.monotonic() + self.answer_timeout
+        while not self.stop_event.is_set():
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                break
+            msg = self.bus.recv(min(remaining, WAIT_SLICE_S))
+            if msg is not None and self._take(msg) == expected:
+                return True
+        self.missed_answers += 1
+        return False
 
     def run(self, max_samples: int | None = None) -> None:
         """Emulate until ``stop()`` (or ``max_samples``)."""
@@ -102,15 +129,7 @@ class CanPlantEmulator:
             sent = time.perf_counter()
             self._send_sample()
             if self.pace == "lockstep":
-                deadline = time.monotonic() + self.answer_timeout
-                answered = False
-                while not answered:
-                    msg = self.bus.recv(max(deadline - time.monotonic(), 0.0))
-                    if msg is None:
-                        self.missed_answers += 1
-                        break
-                    answered = self._take(msg)
-                if answered and self.samples < len(self.latencies):
+                if self._await_answer() and self.samples < len(self.latencies):
                     self.latencies[self.samples] = time.perf_counter() - sent
             else:
                 next_time = start + (self.samples + 1) * self.period

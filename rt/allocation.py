@@ -20,6 +20,8 @@ import numpy as np
 from beamctl.models.actuators import STACKS, StackGeometry
 from beamctl.rt.config import Actuators
 
+SPAN_ROUNDING = 1e-12   # relative: far above the few ulps of the coefficients, far below any real excess
+
 
 def geometry(actuators: Actuators) -> StackGeometry:
     """The stack geometry the controller believes in."""
@@ -40,6 +42,9 @@ class Allocator:
         self.v_max = actuators.max_voltage
         self.v_mid = 0.5 * (self.v_min + self.v_max)
         self.v_span = self.v_max - self.v_min
+        # a spread that exceeds the span only by rounding (a force that needs exactly the whole
+        # range) is reachable: scaling it by 1 - eps would report saturation for nothing
+        self._span_fits = self.v_span * (1.0 + SPAN_ROUNDING)
         self.bias = actuators.bias_voltage
         self.force_constant = actuators.force_constant
         # per support, per stack: volts per newton of Fy and of Fz (2/3 e_i / k)
@@ -67,9 +72,9 @@ class Allocator:
         lo = g1 if g1 < g2 else g2
         lo = lo if lo < g3 else g3
         spread = hi - lo
-        if spread <= self.v_span:
+        if spread <= self._span_fits:
             scale = 1.0
-        elif self.v_span < spread < math.inf:
+        elif spread < math.inf:
             scale = self.v_span / spread
         else:                                   # NaN (invalid demand) or overflow
             scale = 0.0

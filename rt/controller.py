@@ -66,7 +66,8 @@ class Controller:
 
     Lifecycle: ``arm(sample)`` (stacks at bias), ``start()`` (bumpless: integrator zero,
     voltages faded in from bias), ``step(sample)`` once per sample (``step(None)`` when the
-    sample is missing), ``fault(...)``/``request_stop()``, ``rearm()``.
+    sample is missing: the voltages hold until the stale-input fault), ``fault(...)``,
+    ``request_stop()``, ``rearm()``.
     """
 
     def __init__(self, table: GainTable, config: ControllerConfig) -> None:
@@ -208,7 +209,8 @@ class Controller:
                 self._check_inputs(sample)
         state = self.supervisor.state
         if state == State.RUNNING:
-            self._control()
+            if sample is not None:      # no new sample: the voltages hold, the law waits
+                self._control()
         else:
             if sample is not None:      # keep observing: q for telemetry and the operator
                 np.dot(self._c0_phi_inv, self.strains, out=self.q)

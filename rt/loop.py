@@ -6,7 +6,9 @@ Pacing:
   in the future and counts the missed periods (as ros2_control does), never running a burst
   of catch-up cycles. A streak of overruns is a fault.
 - ``sample``: one step per new sample from the HAL, so a DAQ streaming at its own clock (or
-  a simulated plant in simulated time) sets the rate.
+  a simulated plant in simulated time) sets the rate. Each sample is answered by exactly one
+  write; a read time-out writes only while the voltages ramp to bias (an unchanged answer
+  repeated would reach the DAQ as the answer to its next sample, one sample late).
 
 SIGINT and SIGTERM ask for a stop: the voltages ramp to bias, telemetry is flushed, and
 ``run`` returns normally (the caller exits 0).
@@ -22,7 +24,7 @@ from dataclasses import dataclass, field
 
 from beamctl.hal.base import HalBase, HalError, HalStaleData
 from beamctl.rt import realtime
-from beamctl.rt.controller import I_FAULT, I_FLAGS, I_STATE, I_STEP_US, Controller
+from beamctl.rt.controller import FLAG_RAMPING_TO_BIAS, I_FAULT, I_FLAGS, I_STATE, I_STEP_US, Controller
 from beamctl.rt.safety import Fault, State
 from beamctl.rt.telemetry import TelemetryWriter
 from beamctl.rt.timing import LoopTiming
@@ -127,6 +129,11 @@ class ControlLoop:
         c.arm(first)
         if self.start:
             c.start()
+        try:        # the first sample is answered too: the stacks at bias
+            self.hal.publish_status(c.state, c.supervisor.fault)
+            self.hal.write(c.voltages)
+        except HalError as exc:
+            c.fault(Fault.HAL_ERROR, f"write: {exc}")
 
     def _emergency_ramp(self) -> None:
         """An unexpected error left the loop: bring the stacks from the last voltages to bias
@@ -187,11 +194,13 @@ class ControlLoop:
                     c.start()
             voltages = c.step(sample)
             t2 = clock()
-            try:
-                hal.publish_status(record[I_STATE], record[I_FAULT], int(record[I_FLAGS]))
-                hal.write(voltages)
-            except HalError as exc:
-                c.fault(Fault.HAL_ERROR, f"write: {exc}")
+            flags = int(record[I_FLAGS])
+            if timer or sample is not None or flags & FLAG_RAMPING_TO_BIAS:
+                try:
+                    hal.publish_status(record[I_STATE], record[I_FAULT], flags)
+                    hal.write(voltages)
+                except HalError as exc:
+                    c.fault(Fault.HAL_ERROR, f"write: {exc}")
             t3 = clock()
             record[I_STEP_US] = (t2 - t1) * 1e6
             if tel is not None:

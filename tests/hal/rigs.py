@@ -18,6 +18,11 @@ from beamctl.rt.allocation import geometry
 from beamctl.rt.config import controller_config
 
 _channels = itertools.count()
+# Read time-outs (of 1.5 periods each) without a sample before the stale-input fault, for a
+# controller whose DAQ is an emulator thread in the same interpreter: a thread hand-off on a
+# busy 2-core machine can take milliseconds, and the budget must be about a silent DAQ, not
+# about the test's scheduling (the shipped default, 5, is for a DAQ on its own hardware).
+IN_PROCESS_STALE_PERIODS = 100
 TABLE = load_table(default_table_path())
 MODEL = build_model(TABLE.model_parameters)
 GEOMETRY = geometry(controller_config().actuators)
@@ -44,19 +49,34 @@ class SimRig:
         self.hal.close()
 
 
+class _RigBackend(CanBackend):
+    """The CAN backend of a rig: the first open starts the emulator, so that no sample is sent
+    before the controller listens (the virtual bus drops frames nobody receives)."""
+
+    def __init__(self, emulator: CanPlantEmulator, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self._emulator = emulator
+
+    def _open(self) -> None:
+        super()._open()
+        if self._emulator._thread is None:
+            self._emulator.start()
+
+
 class CanRig:
     name = "can"
 
-    def __init__(self, pace: str = "lockstep", latency_samples: int = 0, **plant_overrides) -> None:
+    def __init__(self, pace: str = "lockstep", latency_samples: int = 0, on_step=None,
+                 answer_timeout: float = 0.05, **plant_overrides) -> None:
         channel = f"beamctl-test-{next(_channels)}"
         self.plant = make_plant(**plant_overrides)
         self.emulator_bus = can.Bus(interface="virtual", channel=channel)
         self.emulator = CanPlantEmulator(self.emulator_bus, self.plant, GEOMETRY, pace=pace,
-                                         latency_samples=latency_samples)
+                                         answer_timeout=answer_timeout,
+                                         latency_samples=latency_samples, on_step=on_step)
         # lockstep runs at the controller's pace, not the DAQ's 2500 Hz: no rate check
-        self.hal = CanBackend(TABLE.design.sample_rate_hz, "virtual", channel,
-                              rate_tolerance=0.0 if pace == "lockstep" else 0.05)
-        self.emulator.start()
+        self.hal = _RigBackend(self.emulator, TABLE.design.sample_rate_hz, "virtual", channel,
+                               rate_tolerance=0.0 if pace == "lockstep" else 0.05)
 
     def silence(self) -> None:
         self.emulator.stop()

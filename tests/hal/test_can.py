@@ -130,9 +130,13 @@ def test_no_sample_before_the_first_load_value(request):
 
 
 def test_voltage_and_heartbeat_frames_follow_the_dbc(pair):
+    """Each voltage frame carries the low four bits of the sequence of the sample it answers;
+    the heartbeat follows every 25th voltage frame."""
     backend, daq = pair
     backend.publish_status(2, 0, 5)
-    for _ in range(25):
+    for seq in range(30, 55):
+        daq.strains(seq=seq)
+        assert backend.read(timeout=0.5).sequence == seq
         backend.write(np.array([0.0, 30.15, 75.0, 90.0, 120.3, 150.0]))
     frames = []
     while (m := daq.bus.recv(0.05)) is not None:
@@ -141,7 +145,7 @@ def test_voltage_and_heartbeat_frames_follow_the_dbc(pair):
     volts = [db.decode_message(m.arbitration_id, m.data) for m in frames if m.arbitration_id == 0x120]
     status = [db.decode_message(m.arbitration_id, m.data) for m in frames if m.arbitration_id == 0x121]
     assert len(volts) == 25 and len(status) == 1
-    assert [v["sequence"] for v in volts] == [k % 16 for k in range(25)]
+    assert [v["sequence"] for v in volts] == [seq % 16 for seq in range(30, 55)]
     assert volts[0]["voltage_b3"] == pytest.approx(150.0) and volts[0]["voltage_a2"] == pytest.approx(30.15)
     assert status[0]["state"] == 2 and status[0]["flags"] == 5
 

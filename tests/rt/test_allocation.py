@@ -88,3 +88,15 @@ def test_a_stack_pointing_along_the_force_takes_the_largest_voltage():
     _, v = _allocate(act, [60.0, 0.0, 0.0, 0.0])
     # f = 2/3 e.F = (40, -20, -20) N -> (20, -10, -10) V around the centre
     np.testing.assert_allclose(v[:3], [75.0 + 15.0, 75.0 - 15.0, 75.0 - 15.0], atol=1e-12)
+
+
+def test_a_force_that_needs_exactly_the_whole_range_is_reachable():
+    """100 N along stack 1 at 1 N/V needs stack forces (66.7, -33.3, -33.3) N: a spread of
+    exactly the 100 V span, which rounding makes 100 V + 1 ulp. It is reproduced exactly, so
+    it must not be reported as saturated (scale 1 - eps would hold the integrator)."""
+    act = Actuators(force_constant=1.0, bias_voltage=50.0, min_voltage=0.0, max_voltage=100.0,
+                    orientation_deg=(0.0, 0.0))
+    alloc, v = _allocate(act, [100.0, 0.0, 0.0, 0.0])
+    assert alloc.scale_a == 1.0, f"scale {alloc.scale_a!r} for a force inside the range"
+    assert np.all((v >= 0.0) & (v <= 100.0)), v
+    np.testing.assert_allclose(alloc.forces(v)[:2], [100.0, 0.0], atol=1e-9)

@@ -260,7 +260,20 @@ def test_a_rearm_requested_during_the_ramp_waits_for_bias(table):
     first_fault = states.index(State.FAULT)
     restarted = first_fault + states[first_fault:].index(State.RUNNING)
     assert restarted - first_fault >= RAMP_TIME * 2500, "re-armed only after the ramp"
-    v = np.array(hal.written)
-    ramp = v[first_fault - 1:restarted]
+    v = np.array(hal.written)     # v[0] answers the arming sample, v[k + 1] cycle k
+    ramp = v[first_fault:restarted + 1]
     step = np.abs(np.diff(ramp, axis=0)).max()
     assert step <= np.abs(ramp[0] - 75.0).max() / (RAMP_TIME * 2500) * (1 + 1e-9) + 1e-12
+
+
+def test_sample_pacing_answers_every_sample_once_and_holds_through_a_missing_one(table):
+    """One write per sample (and one for the arming sample): a read time-out while running
+    neither writes nor moves the voltages, so a DAQ pairing answers with samples never sees
+    an answer twice."""
+    script = [DEFLECTED] * 200 + [None, None] + [DEFLECTED] * 100
+    loop, hal = _loop(table, script, max_cycles=302)
+    _run(loop)             # the cycle limit stops the run: a ramp to bias, one write per sample
+    v = np.array(hal.written)
+    assert loop.cycles == (hal.sequence - 1) + 2, "every cycle but the two time-outs read a sample"
+    assert len(v) == hal.sequence, f"{len(v)} writes for {hal.sequence} samples"
+    assert np.abs(v[200] - v[199]).max() > 0, "the controller was moving the stacks"

@@ -9,7 +9,7 @@ from beamctl.hal.emulator import CanPlantEmulator
 from beamctl.rt.controller import COL
 from beamctl.rt.telemetry import read_telemetry
 from beamctl.tools.cli import main
-from tests.hal.rigs import GEOMETRY, make_plant
+from tests.hal.rigs import GEOMETRY, IN_PROCESS_STALE_PERIODS, make_plant
 
 
 def _config(tmp_path, **sections):
@@ -62,7 +62,7 @@ def test_service_against_the_plant_emulator_over_virtual_can(tmp_path, capsys):
     emulator = CanPlantEmulator(bus, make_plant(), GEOMETRY, pace="lockstep").start()
     cfg = _config(tmp_path, hal={"backend": "can", "can": {"interface": "virtual", "channel": "service",
                                                             "rate_tolerance": 0.0}},
-                  controller={"pacing": "sample"},
+                  controller={"pacing": "sample", "safety": {"stale_periods": IN_PROCESS_STALE_PERIODS}},
                   run={"telemetry": str(tmp_path / "can.btl"), "duration": 0.4})
     try:
         assert main(["run", "--config", cfg, "--json"]) == 0
@@ -72,7 +72,8 @@ def test_service_against_the_plant_emulator_over_virtual_can(tmp_path, capsys):
     import json
 
     summary = json.loads(capsys.readouterr().out.split("\n", 1)[1])
-    assert summary["state"] == "STOPPED" and summary["hal"]["sequence_gaps"] == 0
+    assert summary["state"] == "STOPPED", summary["reason"]
+    assert summary["hal"]["sequence_gaps"] == 0
     assert summary["hal"]["bus_load_percent"] == pytest.approx(70.6, abs=0.1)
     assert emulator.status_frames > 0 and emulator.last_state in (2, 4, 5)
 
