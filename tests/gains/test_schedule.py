@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from beamctl.gains.build import build_table
+from beamctl.gains.defaults import DEFAULT_DESIGN
 from beamctl.gains.schedule import GainSchedule
-from beamctl.gains.table import ScheduleSettings
+from beamctl.gains.table import GainTable, ScheduleSettings
 
 
 @pytest.fixture(scope="module")
@@ -94,3 +95,38 @@ def test_non_finite_load_keeps_the_previous_gain_and_raises_the_flag(table):
         np.testing.assert_array_equal(s.update(bad), before)
         assert s.out_of_range
     assert s.filtered_load_n == pytest.approx(1200.0)
+
+
+def test_paper_switching_loads_rising_and_falling():
+    """Rising, the gain of grid point i + 1 takes over once the load passes L_i + h/2 (the
+    operator switched on to the next gain as the load passed each point); falling, the gain of
+    point i - 1 comes back below L_(i-1) - h/2. Swept in 0.1 N steps with the load filter made
+    transparent, each switch lies within one step of its load."""
+    loads = [0.0, 500.0, 1000.0, 1500.0, 2000.0]
+    gains = np.arange(len(loads), dtype=float)[:, None, None] * np.ones((len(loads), 4, 12))
+    table = GainTable(
+        loads_n=np.array(loads), gains=gains, c0_phi_inv=np.eye(4), design=DEFAULT_DESIGN,
+        schedule=ScheduleSettings(mode="paper", load_filter_hz=1e12, hysteresis_n=50.0),
+        model_parameters=None)
+    s = GainSchedule(table)
+
+    def switches(sweep):
+        s.reset(sweep[0])
+        found, index = [], s.index
+        for load in sweep:
+            s.update(load)
+            if s.index != index:
+                found.append((round(load, 1), index, s.index))
+                index = s.index
+        return found
+
+    up = switches(np.arange(0.0, 2000.05, 0.1))
+    assert [(a, b) for _, a, b in up] == [(0, 1), (1, 2), (2, 3), (3, 4)], up
+    step = 0.1 + 1e-6
+    for load, i, _ in up:
+        assert loads[i] + 25.0 < load <= loads[i] + 25.0 + step, f"switched up from {loads[i]} N at {load} N"
+    down = switches(np.arange(2000.0, -0.05, -0.1))
+    assert [(a, b) for _, a, b in down] == [(4, 3), (3, 2), (2, 1)], down
+    for load, i, _ in down:
+        assert loads[i - 1] - 25.0 - step <= load < loads[i - 1] - 25.0, (
+            f"switched down from {loads[i]} N at {load} N")

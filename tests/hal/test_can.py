@@ -129,6 +129,21 @@ def test_no_sample_before_the_first_load_value(request):
         daq.bus.shutdown()
 
 
+def test_strain_frames_without_load_frames_become_a_protocol_error(pair):
+    """The load cell comes every 10th sample; a sample whose load is more than five load
+    periods old is not a sample of the rig as it is (the gain schedule would run on a stale
+    load): the read raises, which the controller turns into a HAL fault and a ramp to bias."""
+    backend, daq = pair                      # one load frame sent, then only strains
+    for _ in range(60):
+        daq.strains()
+    delivered = 0
+    with pytest.raises(hal.HalProtocolError, match="no DAQ_Load frame for 51 samples"):
+        for _ in range(60):
+            backend.read(timeout=0.5)
+            delivered += 1
+    assert delivered == 50, "five load periods (50 samples) of strains use the last load"
+
+
 def test_voltage_and_heartbeat_frames_follow_the_dbc(pair):
     """Each voltage frame carries the low four bits of the sequence of the sample it answers;
     the heartbeat follows every 25th voltage frame."""

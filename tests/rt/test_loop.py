@@ -130,12 +130,23 @@ def test_write_failure_faults(table):
     assert result.fault == Fault.HAL_ERROR.name and "amplifier link lost" in result.reason
 
 
-def test_timer_pacing_holds_the_period(table):
+def test_timer_pacing_keeps_absolute_deadlines(table):
+    """Cycle k starts at the k-th deadline after the first (plus the periods skipped after
+    overruns), however late single cycles were: the rate never drifts. The cycle's median and
+    percentiles are a figure of the machine, measured by `beamctl bench`, not asserted here."""
+    starts = []
     loop, hal = _loop(table, [], pacing="timer", max_cycles=1000, default=oscillating)
+    loop.on_cycle = lambda lp: starts.append((time.perf_counter(), lp.timing.missed_periods))
     result = _run(loop)
     assert result.state == "STOPPED"
-    cycle = result.timing["cycle"]
-    assert cycle["p50_us"] == pytest.approx(400.0, rel=0.03), cycle
+    (first, missed_first), (last, missed_last) = starts[0], starts[-1]
+    periods = (len(starts) - 1) + (missed_last - missed_first)
+    drift = (last - first) - periods * loop.period
+    # a relative sleep would drift by its overshoot every cycle (tens of us x 1000 cycles);
+    # what may remain is the lateness of the two cycles compared (scheduling, a few ms at most)
+    assert abs(drift) < 0.01, (
+        f"{len(starts)} cycles and {missed_last - missed_first} skipped periods took "
+        f"{last - first:.4f} s, {1e3 * drift:.2f} ms off {periods} periods")
     for stage in ("read", "compute", "write", "cycle"):
         assert result.timing[stage]["count"] > 900 and result.timing[stage]["max_us"] > 0
 
