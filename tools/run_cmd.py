@@ -85,8 +85,9 @@ def run(args: argparse.Namespace) -> int:
                        max_cycles=max_cycles, on_cycle=on_cycle if notifier.watchdog_interval else None)
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGUSR1, lambda *_: loop.request_rearm())
+    # the banner goes to stderr with the other messages: stdout carries the summary alone
     print(f"beamctl run: {cfg.hal.backend} backend, {table.design.sample_rate_hz:g} Hz, "
-          f"{cfg.controller.pacing} pacing, gain table {cfg.table_path}, telemetry {path}", flush=True)
+          f"{cfg.controller.pacing} pacing, gain table {cfg.table_path}, telemetry {path}", file=sys.stderr)
     try:
         hal.open()
     except HalError as exc:

@@ -1,5 +1,7 @@
 """``beamctl run``: the service, its refusals and its operator re-arm."""
 
+import json
+
 import can
 import numpy as np
 import pytest
@@ -69,9 +71,7 @@ def test_service_against_the_plant_emulator_over_virtual_can(tmp_path, capsys):
     finally:
         emulator.stop()
         bus.shutdown()
-    import json
-
-    summary = json.loads(capsys.readouterr().out.split("\n", 1)[1])
+    summary = json.loads(capsys.readouterr().out)
     assert summary["state"] == "STOPPED" and summary["hal"]["sequence_gaps"] == 0
     assert summary["hal"]["bus_load_percent"] == pytest.approx(70.6, abs=0.1)
     assert emulator.status_frames > 0 and emulator.last_state in (2, 4, 5)
@@ -93,9 +93,7 @@ def test_a_run_longer_than_the_telemetry_ring_loses_nothing(tmp_path, capsys):
                                "hal": {"backend": "sim", "sim": {"pace": "wallclock"}},
                                "run": {"telemetry": str(tel), "duration": 1.5}})
     assert main(["run", "--config", cfg, "--json"]) == 0
-    import json
-
-    summary = json.loads(capsys.readouterr().out.split("\n", 1)[1])
+    summary = json.loads(capsys.readouterr().out)
     assert summary["telemetry"]["dropped"] == 0
     _, rows = read_telemetry(tel)
     assert len(rows) == summary["cycles"] == summary["telemetry"]["written"]
@@ -127,3 +125,11 @@ def test_bad_flags_are_refused_with_exit_2(argv, capsys):
 def test_a_single_point_grid_cannot_be_interpolated(tmp_path, capsys):
     assert main(["gains", "build", "--grid", "100:100:1", "--out", str(tmp_path / "g.yaml")]) == 2
     assert "--grid" in capsys.readouterr().err and not (tmp_path / "g.yaml").exists()
+
+
+def test_json_prints_exactly_one_object_and_the_banner_goes_to_stderr(tmp_path, capsys):
+    cfg = _config(tmp_path, **SIM, run={"telemetry": str(tmp_path / "run.btl"), "duration": 0.1})
+    assert main(["run", "--config", cfg, "--json"]) == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["state"] == "STOPPED"
+    assert captured.err.startswith("beamctl run: sim backend")
