@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from beamctl.rt.telemetry import TelemetryError, export, read_telemetry
 
 
@@ -23,11 +25,22 @@ def add_parser(sub) -> None:
     pl.set_defaults(run=run_plot)
 
 
+def _read(file: str, command: str) -> tuple[dict, np.ndarray]:
+    """The recording; a warning when it ends in an incomplete row (its complete rows are used)."""
+    header, rows = read_telemetry(file)
+    ignored = header["incomplete_row_bytes"]
+    if ignored:
+        print(f"beamctl log {command}: warning: {file} holds {len(rows)} complete rows and ends in an "
+              f"incomplete row ({ignored} bytes ignored: the recording was cut off mid-write)",
+              file=sys.stderr)
+    return header, rows
+
+
 def run_export(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else Path(args.file).with_suffix("." + args.to)
     try:
-        header, rows = read_telemetry(args.file)
-        path = export(args.file, out, args.to)
+        header, rows = _read(args.file, "export")
+        path = export(header, rows, out, args.to)
     except TelemetryError as exc:
         print(f"beamctl log export: error: {exc}", file=sys.stderr)
         return 2
@@ -39,7 +52,7 @@ def run_plot(args: argparse.Namespace) -> int:
     from beamctl.tools import plots
 
     try:
-        header, rows = read_telemetry(args.file)
+        header, rows = _read(args.file, "plot")
     except TelemetryError as exc:
         print(f"beamctl log plot: error: {exc}", file=sys.stderr)
         return 2
