@@ -1,4 +1,8 @@
-"""Entry point of the ``beamctl`` command line."""
+"""Entry point of the ``beamctl`` command line.
+
+A refusal of bad input (a flag, a configuration value, an unreadable input file, an output
+path that cannot be written) is one line on stderr and exit status 2, before the work starts.
+"""
 
 from __future__ import annotations
 
@@ -7,7 +11,9 @@ import sys
 
 from beamctl.gains.build import tool_version
 from beamctl.models.schema import ConfigError
+from beamctl.rt.telemetry import TelemetryError
 from beamctl.tools import bench_cmd, experiment_cmd, gains_cmd, log_cmd, model_cmd, plant_cmd, run_cmd
+from beamctl.tools.outputs import OutputPathError
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -26,6 +32,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _command_name(args: argparse.Namespace) -> str:
+    """``beamctl gains build``: the command and its action, as the user typed them."""
+    words = [getattr(args, key, None) for key in ("command", "gains_command", "log_command")]
+    return " ".join(["beamctl", *(w for w in words if w)])
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run ``beamctl`` with ``argv`` (default: the process arguments); return the exit code."""
     parser = build_parser()
@@ -35,8 +47,8 @@ def main(argv: list[str] | None = None) -> int:
         return int(exc.code or 0)
     try:
         return int(args.run(args) or 0)
-    except ConfigError as exc:
-        print(f"beamctl {args.command}: error: {exc}", file=sys.stderr)
+    except (ConfigError, OutputPathError, TelemetryError) as exc:
+        print(f"{_command_name(args)}: error: {exc}", file=sys.stderr)
         return 2
 
 

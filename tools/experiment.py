@@ -19,7 +19,6 @@ have no curvature there (0.05 mm at 2000 N with the default bow), which gauges c
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass, field, replace
@@ -222,7 +221,6 @@ def summarise(trace: RunTrace) -> dict:
 
 def run_experiment(cfg: ServiceConfig, settings: dict, out_dir: Path, progress=None,
                    modes: tuple[str, ...] | None = None) -> tuple[dict, dict[str, RunTrace]]:
-    out_dir.mkdir(parents=True, exist_ok=True)
     modes = modes or (MODES if settings["paper_mode"] else MODES[:2])
     traces = {}
     for k, mode in enumerate(modes):
@@ -246,5 +244,4 @@ def run_experiment(cfg: ServiceConfig, settings: dict, out_dir: Path, progress=N
                            "load_rate_N_per_s": cfg.plant["load"]["rate"],
                            "deflection_limit_mm": 1e3 * settings["deflection_limit"]}
     summary["sim_realtime_factor"] = plant_s / wall_s if wall_s else None
-    (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
     return summary, traces

@@ -5,9 +5,9 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from pathlib import Path
 
 from beamctl.tools.experiment import load_experiment_config, run_experiment
+from beamctl.tools.outputs import check_dir, write_text
 from beamctl.tools.progress import ProgressBar
 
 PAPER = {"uncontrolled": {"load_at_0.5mm_N": 2438.0, "load_at_1.0mm_N": 2723.0, "buckling_angle_deg": 234.0},
@@ -51,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
     cfg, settings = load_experiment_config(args.config)
     if args.no_paper:
         settings = {**settings, "paper_mode": False}
-    out = Path(args.out)
+    out = check_dir(args.out, "--out")
     bar = ProgressBar("experiment")
     start = time.monotonic()
     summary, traces = run_experiment(cfg, settings, out, progress=bar)
@@ -61,8 +61,8 @@ def run(args: argparse.Namespace) -> int:
 
     figures = plots.experiment_figures(summary, traces, out)
     table = summary_table(summary)
-    (out / "summary.txt").write_text(table + "\n")
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    write_text(out / "summary.txt", table + "\n")
+    write_text(out / "summary.json", json.dumps(summary, indent=1))
     if args.json:
         print(json.dumps(summary, indent=1))
     else:

@@ -8,7 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from beamctl.rt.telemetry import TelemetryError, export, read_telemetry
+from beamctl.rt.telemetry import export, read_telemetry
+from beamctl.tools.outputs import OutputPathError, check_dir, check_file, replacing
 
 
 def add_parser(sub) -> None:
@@ -37,25 +38,22 @@ def _read(file: str, command: str) -> tuple[dict, np.ndarray]:
 
 
 def run_export(args: argparse.Namespace) -> int:
-    out = Path(args.out) if args.out else Path(args.file).with_suffix("." + args.to)
-    try:
-        header, rows = _read(args.file, "export")
-        path = export(header, rows, out, args.to)
-    except TelemetryError as exc:
-        print(f"beamctl log export: error: {exc}", file=sys.stderr)
-        return 2
-    print(f"wrote {path} ({len(rows)} samples x {len(header['columns'])} columns)")
+    what = "--out" if args.out else "--out (default)"
+    out = check_file(args.out or Path(args.file).with_suffix("." + args.to), what)
+    if out.resolve() == Path(args.file).resolve():
+        raise OutputPathError(what, out, "it is the telemetry file being exported")
+    header, rows = _read(args.file, "export")
+    with replacing(out) as temp:
+        export(header, rows, temp, args.to)
+    print(f"wrote {out} ({len(rows)} samples x {len(header['columns'])} columns)")
     return 0
 
 
 def run_plot(args: argparse.Namespace) -> int:
     from beamctl.tools import plots
 
-    try:
-        header, rows = _read(args.file, "plot")
-    except TelemetryError as exc:
-        print(f"beamctl log plot: error: {exc}", file=sys.stderr)
-        return 2
-    for path in plots.telemetry_figures(header, rows, Path(args.dir)):
+    out_dir = check_dir(args.dir, "DIR")
+    header, rows = _read(args.file, "plot")
+    for path in plots.telemetry_figures(header, rows, out_dir):
         print(f"wrote {path}")
     return 0
