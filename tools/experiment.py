@@ -9,6 +9,8 @@ Each mode runs the load ramp on a fresh plant with the same scenario and the sam
   an integrator without anti-windup.
 A run ends when the measured deflection passes ``experiment.deflection_limit`` or the ramp
 reaches its end. A controller fault does not end a run: the beam is watched until it fails.
+SIGINT or SIGTERM during a run ramps the stacks to bias (the loop's stop) and raises
+``Interrupted``: a run cut short is no result.
 
 Deflection, as the paper measures it (figure 7): the lateral deflection along the beam
 reconstructed from the strain gauges, Phi (C0 Phi)^-1 y, its largest magnitude. The report
@@ -20,6 +22,7 @@ have no curvature there (0.05 mm at 2000 N with the default bow), which gauges c
 from __future__ import annotations
 
 import math
+import signal
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -85,6 +88,19 @@ class RunTrace:
         return {k: np.asarray(v) for k, v in self.__dict__.items() if isinstance(v, list)}
 
 
+class Interrupted(Exception):
+    """A signal stopped a simulated run (after the loop ramped the stacks to bias)."""
+
+    def __init__(self, signal_name: str, during: str) -> None:
+        self.signal_name = signal_name
+        super().__init__(f"{signal_name} during {during}")
+
+    @property
+    def exit_status(self) -> int:
+        """128 + the signal's number, as a shell reports a command a signal ended."""
+        return 128 + signal.Signals[self.signal_name].value
+
+
 def experiment_config(data: dict | None = None, source: str = "") -> tuple[ServiceConfig, dict]:
     """The scenario over the shipped defaults: (service config, experiment settings)."""
     merged = merge(SCENARIO, data or {})
@@ -131,9 +147,6 @@ def run_mode(mode: str, cfg: ServiceConfig, settings: dict, out_dir: Path, progr
     limit = settings["deflection_limit"]
     ramp = plant.config.load
     end_time = ramp.duration()
-    telemetry = TelemetryWriter.for_controller(out_dir / f"telemetry_{mode}.btl", controller,
-                                               meta={"mode": mode, "scenario": cfg.source}).start()
-    trace.telemetry = str(telemetry.path)
     counter = {"n": 0}
 
     def monitor(loop: ControlLoop) -> None:
@@ -163,13 +176,21 @@ def run_mode(mode: str, cfg: ServiceConfig, settings: dict, out_dir: Path, progr
                 loop.request_stop("end of ramp")
 
     hal.open()
+    telemetry = None
     start = time.perf_counter()
     try:
+        telemetry = TelemetryWriter.for_controller(out_dir / f"telemetry_{mode}.btl", controller,
+                                                   meta={"mode": mode, "scenario": cfg.source}).start()
+        trace.telemetry = str(telemetry.path)
         loop = ControlLoop(controller, hal, telemetry=telemetry, stop_on_fault=False,
                            start=(mode != "uncontrolled"), on_cycle=monitor)
         result = loop.run(acquire_rt=False)
     finally:
         hal.close()
+        if telemetry is not None:
+            telemetry.close()
+    if result.signal_received:
+        raise Interrupted(result.signal_received, f"the {mode} run")
     trace.wall_s = time.perf_counter() - start
     trace.plant_s = plant.time
     trace.fault = result.reason if result.fault != "NONE" else ""

@@ -5,10 +5,14 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from pathlib import Path
 
+from beamctl.tools import plots
 from beamctl.tools.experiment import load_experiment_config, run_experiment
 from beamctl.tools.outputs import check_dir, write_text
 from beamctl.tools.progress import ProgressBar
+
+REPORT_FILES = (*plots.EXPERIMENT_FIGURES, "summary.txt", "summary.json")
 
 PAPER = {"uncontrolled": {"load_at_0.5mm_N": 2438.0, "load_at_1.0mm_N": 2723.0, "buckling_angle_deg": 234.0},
          "controlled": {"load_at_1.0mm_N": 3223.0, "buckling_angle_deg": 128.0}}
@@ -47,22 +51,33 @@ def summary_table(summary: dict) -> str:
     return f"critical load Fx,cr = {summary['critical_load_N']:.0f} N\n" + text
 
 
+def remove_report(out: Path) -> None:
+    """Remove the figures and summaries of a report (never telemetry: a recording is kept)."""
+    for name in REPORT_FILES:
+        (out / name).unlink(missing_ok=True)
+
+
 def run(args: argparse.Namespace) -> int:
     cfg, settings = load_experiment_config(args.config)
     if args.no_paper:
         settings = {**settings, "paper_mode": False}
     out = check_dir(args.out, "--out")
-    bar = ProgressBar("experiment")
+    # The folder holds one experiment's report: a previous one's figures and summaries go
+    # now, so that a run cut short leaves nothing that could be taken for its result.
+    remove_report(out)
     start = time.monotonic()
-    summary, traces = run_experiment(cfg, settings, out, progress=bar)
-    bar.close()
+    with ProgressBar("experiment") as bar:
+        summary, traces = run_experiment(cfg, settings, out, progress=bar)
+        bar.close()
     summary["wall_time_s"] = time.monotonic() - start
-    from beamctl.tools import plots
-
-    figures = plots.experiment_figures(summary, traces, out)
     table = summary_table(summary)
-    write_text(out / "summary.txt", table + "\n")
-    write_text(out / "summary.json", json.dumps(summary, indent=1))
+    try:
+        figures = plots.experiment_figures(summary, traces, out)
+        write_text(out / "summary.txt", table + "\n")
+        write_text(out / "summary.json", json.dumps(summary, indent=1))
+    except BaseException:       # a report is whole or absent
+        remove_report(out)
+        raise
     if args.json:
         print(json.dumps(summary, indent=1))
     else:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 
 import numpy as np
@@ -66,9 +67,9 @@ def run_build(args: argparse.Namespace) -> int:
     params = load_parameters(args.config)
     out = check_file(args.out, "--out")
     model = build_model(params)
-    bar = ProgressBar("gains build")
-    table = build_table(model, grid, mode=args.mode, force=args.force, progress=bar)
-    elapsed = bar.close()
+    with ProgressBar("gains build") as bar:
+        table = build_table(model, grid, mode=args.mode, force=args.force, progress=bar)
+        elapsed = bar.close()
     worst = max(table.checks, key=lambda c: c.spectral_radius)
     print(f"{len(table.loads_n)} grid points {table.loads_n[0]:g}..{table.loads_n[-1]:g} N, "
           f"mode {table.schedule.mode}, {len(table.checks)} closed-loop checks in {elapsed:.1f} s")
@@ -90,10 +91,11 @@ def run_build(args: argparse.Namespace) -> int:
 def run_check(args: argparse.Namespace) -> int:
     table = _load(args.file)
     model = build_model(table.model_parameters)
-    bar = ProgressBar("gains check") if not args.json else None
-    checks = closed_loop_checks(model, table, progress=bar)
-    if bar:
-        bar.close()
+    bar = None if args.json else ProgressBar("gains check")
+    with bar or contextlib.nullcontext():
+        checks = closed_loop_checks(model, table, progress=bar)
+        if bar:
+            bar.close()
     all_stable = all(c.stable for c in checks)
     if args.json:
         print(json.dumps({

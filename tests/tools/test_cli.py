@@ -1,6 +1,7 @@
-"""The command line under bad input: one line on stderr, exit status 2, never a traceback,
-nothing left behind."""
+"""The command line under bad input and interruption: one line on stderr, the documented exit
+status, never a traceback, never a half-written file."""
 
+import fcntl
 from pathlib import Path
 
 import pytest
@@ -8,6 +9,7 @@ import yaml
 
 from beamctl.tools import experiment_cmd, gains_cmd, log_cmd, model_cmd, run_cmd
 from beamctl.tools.cli import main
+from tests.tools.processes import beamctl, interrupt_when
 
 UNWRITABLE = Path("/sys")      # refuses new files even to root
 
@@ -120,3 +122,53 @@ def test_a_can_recording_path_is_checked_with_the_telemetry(tmp_path, monkeypatc
     config = _config(tmp_path, {"hal": {"backend": "can", "can": {"record": str(tmp_path)}}})
     assert main(["run", "--config", config]) == 2
     _one_line_error(capsys, "hal.can.record", "it is a directory")
+
+
+# -- flags -----------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize(("argv", "needle"), [
+    (["gains", "build", "--mode", "fast"], "--mode"),
+    (["bus-budget", "--rate", "fast"], "--rate"),
+    (["experiment", "--no-such-flag"], "--no-such-flag"),
+    (["log", "export", "run.btl"], "--to"),
+    (["gains"], "ACTION"),
+])
+def test_a_bad_flag_is_refused_in_one_line(argv, needle, capsys):
+    assert main(argv) == 2
+    _one_line_error(capsys, "error:", needle)
+
+
+# -- interruption ----------------------------------------------------------------------------------
+
+def test_ctrl_c_anywhere_in_a_command_exits_130_in_one_line(monkeypatch, capsys):
+    def interrupted(*_args, **_kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(model_cmd, "build_model", interrupted)
+    assert main(["model"]) == 130
+    assert capsys.readouterr().err == "beamctl model: interrupted (SIGINT)\n"
+
+
+def test_ctrl_c_during_gains_build_exits_130_and_leaves_no_table(tmp_path):
+    out = tmp_path / "gains" / "table.yaml"
+    # 401 grid points: long enough that SIGINT lands while it computes, on any machine
+    process = beamctl("gains", "build", "--grid", "0:4000:10", "--out", str(out), cwd=tmp_path)
+    status, err = interrupt_when(process, b"gains build:")
+    assert status == 130, err
+    assert err.splitlines()[-1] == "beamctl gains build: interrupted (SIGINT)", err
+    assert "Traceback" not in err
+    assert not out.exists() and not (tmp_path / "gains").exists(), "no table, no temporary file"
+
+
+def test_a_reader_that_stops_early_ends_the_command_quietly(tmp_path):
+    """``beamctl gains check | head``: exit 141 (the shell's status for SIGPIPE), no traceback."""
+    process = beamctl("gains", "check", cwd=tmp_path)
+    # a one-page pipe: the check's ~8 kB table cannot all be written before this reader leaves
+    fcntl.fcntl(process.stdout.fileno(), fcntl.F_SETPIPE_SZ, 4096)
+    try:
+        assert process.stdout.read(16).startswith(b"  load N")
+    finally:
+        process.stdout.close()
+    err = process.communicate(timeout=300)[1].decode()
+    assert process.returncode == 141, err
+    assert "Traceback" not in err and "BrokenPipeError" not in err and "Exception ignored" not in err, err

@@ -1,6 +1,8 @@
 """``beamctl run``: the service, its refusals and its operator re-arm."""
 
 import json
+import signal
+import time
 
 import can
 import numpy as np
@@ -12,6 +14,7 @@ from beamctl.rt.controller import COL
 from beamctl.rt.telemetry import read_telemetry
 from beamctl.tools.cli import main
 from tests.hal.rigs import GEOMETRY, make_plant
+from tests.tools.processes import beamctl
 
 
 def _config(tmp_path, **sections):
@@ -133,3 +136,23 @@ def test_json_prints_exactly_one_object_and_the_banner_goes_to_stderr(tmp_path, 
     captured = capsys.readouterr()
     assert json.loads(captured.out)["state"] == "STOPPED"
     assert captured.err.startswith("beamctl run: sim backend")
+
+
+def test_ctrl_c_is_the_operator_s_stop_and_exits_0(tmp_path):
+    """For the service SIGINT is a normal stop: ramp to bias, flush telemetry, exit 0."""
+    tel = tmp_path / "run.btl"
+    cfg = _config(tmp_path, **{**SIM, "hal": {"backend": "sim", "sim": {"pace": "wallclock"}},
+                               "run": {"telemetry": str(tel), "duration": 0}})
+    process = beamctl("run", "--config", cfg, cwd=tmp_path)
+    try:
+        deadline = time.monotonic() + 300
+        # the loop is running (and handles SIGINT) once its records reach the file
+        while not (tel.exists() and len(read_telemetry(tel)[1]) > 0):
+            assert process.poll() is None and time.monotonic() < deadline, process.communicate()
+            time.sleep(0.05)
+        process.send_signal(signal.SIGINT)
+        out, err = process.communicate(timeout=300)
+    finally:
+        process.kill()
+    assert process.returncode == 0, err
+    assert b"stopped by SIGINT" in out and b"ended STOPPED" in out and b"Traceback" not in err
