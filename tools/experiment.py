@@ -135,7 +135,9 @@ def paper_table(cfg: ServiceConfig) -> GainTable:
     return build_table(build_model(cfg.model), mode="paper", check=False)
 
 
-def run_mode(mode: str, cfg: ServiceConfig, settings: dict, out_dir: Path, progress=None) -> RunTrace:
+def run_mode(mode: str, cfg: ServiceConfig, settings: dict, telemetry_dir: Path | None = None,
+             progress=None) -> RunTrace:
+    """One load ramp; full-rate telemetry into ``telemetry_dir/telemetry_<mode>.btl`` if given."""
     table = load_gain_table(cfg) if mode != "paper" else paper_table(cfg)
     controller_cfg = replace(cfg.controller, pacing="sample",
                              anti_windup=cfg.controller.anti_windup if mode == "interpolate" else False)
@@ -179,9 +181,10 @@ def run_mode(mode: str, cfg: ServiceConfig, settings: dict, out_dir: Path, progr
     telemetry = None
     start = time.perf_counter()
     try:
-        telemetry = TelemetryWriter.for_controller(out_dir / f"telemetry_{mode}.btl", controller,
-                                                   meta={"mode": mode, "scenario": cfg.source}).start()
-        trace.telemetry = str(telemetry.path)
+        if telemetry_dir is not None:
+            telemetry = TelemetryWriter.for_controller(telemetry_dir / f"telemetry_{mode}.btl", controller,
+                                                       meta={"mode": mode, "scenario": cfg.source}).start()
+            trace.telemetry = str(telemetry.path)
         loop = ControlLoop(controller, hal, telemetry=telemetry, stop_on_fault=False,
                            start=(mode != "uncontrolled"), on_cycle=monitor)
         result = loop.run(acquire_rt=False)
@@ -240,15 +243,17 @@ def summarise(trace: RunTrace) -> dict:
     return out
 
 
-def run_experiment(cfg: ServiceConfig, settings: dict, out_dir: Path, progress=None,
+def run_experiment(cfg: ServiceConfig, settings: dict, telemetry_dir: Path | None = None, progress=None,
                    modes: tuple[str, ...] | None = None) -> tuple[dict, dict[str, RunTrace]]:
+    """Run every mode; return the summary and the runs' traces. Full-rate telemetry of each
+    run goes into ``telemetry_dir`` if given."""
     modes = modes or (MODES if settings["paper_mode"] else MODES[:2])
     traces = {}
     for k, mode in enumerate(modes):
         def step(fraction: float, label: str, k=k) -> None:
             if progress:
                 progress(round(1000 * (k + fraction) / len(modes)), 1000, f"run {k + 1}/{len(modes)} {label}")
-        traces[mode] = run_mode(mode, cfg, settings, out_dir, step)
+        traces[mode] = run_mode(mode, cfg, settings, telemetry_dir, step)
     if progress:
         progress(1000, 1000, "done")
     plant_model = build_plant(cfg, load_gain_table(cfg)).model

@@ -25,6 +25,9 @@ def add_parser(sub) -> None:
                                    "500 N switching; write a report folder.")
     p.add_argument("--config", metavar="F", help="scenario file (plant, controller, model, experiment)")
     p.add_argument("--out", metavar="DIR", default="experiment-report", help="report folder")
+    p.add_argument("--telemetry", action="store_true",
+                   help="also record each run's full-rate telemetry into the report folder "
+                        "(telemetry_<mode>.btl, about 40 MB a run with the default scenario)")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     p.add_argument("--no-paper", action="store_true", help="skip the run with the paper's 500 N switching")
     p.set_defaults(run=run)
@@ -67,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
     remove_report(out)
     start = time.monotonic()
     with ProgressBar("experiment") as bar:
-        summary, traces = run_experiment(cfg, settings, out, progress=bar)
+        summary, traces = run_experiment(cfg, settings, out if args.telemetry else None, progress=bar)
         bar.close()
     summary["wall_time_s"] = time.monotonic() - start
     table = summary_table(summary)
@@ -84,5 +87,6 @@ def run(args: argparse.Namespace) -> int:
         print(table)
         print(f"\n{sum(t.plant_s for t in traces.values()):.0f} s of plant time in "
               f"{summary['wall_time_s']:.1f} s ({summary['sim_realtime_factor']:.1f} x real time)")
-        print(f"report: {out}/ ({', '.join(p.name for p in figures)}, summary.txt, summary.json, telemetry)")
+        recorded = ", telemetry_<mode>.btl" if args.telemetry else ""
+        print(f"report: {out}/ ({', '.join(p.name for p in figures)}, summary.txt, summary.json{recorded})")
     return 0

@@ -87,7 +87,8 @@ def test_an_output_path_that_cannot_be_written_is_refused_before_the_work(comman
 def test_a_refused_experiment_leaves_no_report_folder(tmp_path, capsys):
     config = tmp_path / "bad.yaml"
     config.write_text("plant: {load: {rate: -1}}\n")
-    assert main(["experiment", "--config", str(config), "--out", str(tmp_path / "report")]) == 2
+    argv = ["experiment", "--config", str(config), "--out", str(tmp_path / "report"), "--telemetry"]
+    assert main(argv) == 2
     _one_line_error(capsys, "plant.load.rate")
     assert not (tmp_path / "report").exists()
 

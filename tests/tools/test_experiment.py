@@ -29,7 +29,8 @@ def report(tmp_path_factory):
 
     buffer = io.StringIO()
     with contextlib.redirect_stdout(buffer):
-        code = main(["experiment", "--config", str(scenario), "--out", str(out / "report"), "--json"])
+        code = main(["experiment", "--config", str(scenario), "--out", str(out / "report"), "--json",
+                     "--telemetry"])
     assert code == 0
     return json.loads(buffer.getvalue()), out / "report"
 
@@ -112,6 +113,15 @@ def _scenario(tmp_path, load: str) -> str:
     return str(f)
 
 
+def test_full_rate_telemetry_is_recorded_only_when_asked(tmp_path, capsys):
+    scenario = _scenario(tmp_path, "{start: 260.0, end: 500.0, rate: 200.0, hold: 0.0}")
+    out = tmp_path / "report"
+    assert main(["experiment", "--config", scenario, "--out", str(out), "--no-paper", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert sorted(p.name for p in out.iterdir()) == sorted(REPORT_FILES), "figures and summaries only"
+    assert summary["controlled"]["telemetry"] == "" and summary["uncontrolled"]["telemetry"] == ""
+
+
 def test_a_signal_during_a_run_ramps_to_bias_and_raises_interrupted(tmp_path):
     """SIGINT as the operator's Ctrl-C, delivered while the loop runs (from its own progress
     report): the run ends through the loop's ramp to bias, and is no result."""
@@ -150,7 +160,7 @@ def test_ctrl_c_during_the_experiment_exits_130_with_no_summary_or_figure(tmp_pa
     progress from inside the first run."""
     scenario = _scenario(tmp_path, "{start: 260.0, end: 4000.0, rate: 20.0}")   # minutes of plant time
     out = tmp_path / "report"
-    process = beamctl("experiment", "--config", scenario, "--out", str(out), cwd=tmp_path)
+    process = beamctl("experiment", "--config", scenario, "--out", str(out), "--telemetry", cwd=tmp_path)
     status, err = interrupt_when(process, b"experiment:")
     assert status == 130, err
     last = err.splitlines()[-1]
