@@ -139,6 +139,25 @@ def test_a_bad_flag_is_refused_in_one_line(argv, needle, capsys):
     _one_line_error(capsys, "error:", needle)
 
 
+@pytest.mark.parametrize("argv", [
+    ["model", "--config", "missing.yaml"],
+    ["gains", "build", "--config", "missing.yaml"],
+    ["gains", "check", "missing.yaml"],
+    ["gains", "show", "missing.yaml"],
+    ["experiment", "--config", "missing.yaml"],
+    ["run", "--config", "missing.yaml"],
+    ["log", "export", "missing.btl", "--to", "csv"],
+    ["log", "plot", "missing.btl", "figs"],
+    ["bus-budget", "--dbc", "missing.dbc"],
+])
+def test_a_missing_input_file_is_refused_in_one_line(argv, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    command = argv[:2] if argv[0] in ("gains", "log") else argv[:1]
+    _one_line_error(capsys, f"beamctl {' '.join(command)}: error:", "missing.")
+    assert list(tmp_path.iterdir()) == [], "nothing written"
+
+
 # -- interruption ----------------------------------------------------------------------------------
 
 def test_ctrl_c_anywhere_in_a_command_exits_130_in_one_line(monkeypatch, capsys):
