@@ -5,7 +5,25 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from beamctl.models.schema import boolean, choice, merge, number, number_list, path, positive, text, validate
+from beamctl.models.schema import (
+    ConfigError,
+    boolean,
+    choice,
+    merge,
+    number,
+    number_list,
+    path,
+    positive,
+    text,
+    validate,
+)
+
+# The bit rates a CAN bus can have. Classic CAN, and the arbitration phase of CAN FD: 10 kbit/s
+# (the slowest of the standard rates, CiA 301) to 1 Mbit/s (the most ISO 11898-2 allows). The
+# CAN FD data phase: from the arbitration rate (it is never slower) up to 8 Mbit/s, the fastest
+# transceivers specified for it (ISO 11898-2:2016 with signal improvement, CiA 601-4).
+BITRATE_RANGE = (10e3, 1e6)
+DATA_BITRATE_MAX = 8e6
 
 HAL_DEFAULTS: dict[str, Any] = {
     "backend": "sim",
@@ -33,6 +51,23 @@ class HalConfig:
     can: dict
 
 
+def check_bitrates(bitrate: float, data_bitrate: float, fd: bool, keys: tuple[str, str],
+                   source: str = "") -> None:
+    """Refuse a bit rate no CAN bus has (the data phase's only with ``fd``), naming ``keys``."""
+    low, high = BITRATE_RANGE
+    if not low <= bitrate <= high:
+        raise ConfigError(keys[0], bitrate,
+                          f"a CAN bit rate from {low / 1e3:g} kbit/s to {high / 1e6:g} Mbit/s "
+                          f"(classic CAN, and the arbitration phase of CAN FD)", source)
+    if fd and not bitrate <= data_bitrate <= DATA_BITRATE_MAX:
+        raise ConfigError(keys[1], data_bitrate,
+                          f"a CAN FD data-phase bit rate from the arbitration rate "
+                          f"({bitrate / 1e3:g} kbit/s) to {DATA_BITRATE_MAX / 1e6:g} Mbit/s", source)
+
+
 def hal_config(overrides: dict[str, Any] | None = None, source: str = "", prefix: str = "hal.") -> HalConfig:
     v = validate(merge(HAL_DEFAULTS, overrides or {}), _SCHEMA, source, prefix)
-    return HalConfig(backend=v["backend"], sim=v["sim"], can=v["can"])
+    can = v["can"]
+    check_bitrates(can["bitrate"], can["data_bitrate"], can["fd"],
+                   (f"{prefix}can.bitrate", f"{prefix}can.data_bitrate"), source)
+    return HalConfig(backend=v["backend"], sim=v["sim"], can=can)

@@ -11,7 +11,8 @@ Pacing:
   repeated would reach the DAQ as the answer to its next sample, one sample late).
 
 SIGINT and SIGTERM ask for a stop: the voltages ramp to bias, telemetry is flushed, and
-``run`` returns normally (the caller exits 0).
+``run`` returns normally; ``RunResult.signal_received`` names the signal, so that the caller
+decides what it means (the service: the operator's stop; a simulated experiment: cut short).
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ class RunResult:
     telemetry: dict = field(default_factory=dict)
     realtime: dict = field(default_factory=dict)
     hal: dict = field(default_factory=dict)
+    signal_received: str = ""     # SIGINT or SIGTERM during the run, even after another stop request
 
 
 class ControlLoop:
@@ -69,6 +71,7 @@ class ControlLoop:
         self.period = controller.period
         self.cycles = 0
         self._stop_signal = ""
+        self._signal_received = ""
         self._overrun_limit = controller.config.safety.overrun_streak
 
     # -- stopping ---------------------------------------------------------------------------------
@@ -83,7 +86,8 @@ class ControlLoop:
         self._rearm_requested = True
 
     def _on_signal(self, signum, _frame) -> None:
-        self.request_stop(signal.Signals(signum).name)
+        self._signal_received = signal.Signals(signum).name
+        self.request_stop(self._signal_received)
 
     # -- the loop ---------------------------------------------------------------------------------
     def run(self, require_rt: bool = False, acquire_rt: bool = True) -> RunResult:
@@ -116,7 +120,7 @@ class ControlLoop:
         return RunResult(state=c.state.name, fault=c.supervisor.fault.name, reason=c.supervisor.reason(),
                          cycles=self.cycles, stop_requested_by=self._stop_signal,
                          timing=self.timing.summary(), telemetry=tel, realtime=rt_report,
-                         hal=self.hal.status())
+                         hal=self.hal.status(), signal_received=self._signal_received)
 
     def _arm(self) -> None:
         c = self.controller

@@ -8,7 +8,8 @@ and counts it. The writer appends whole rows and flushes at least every ``flush_
 
 File format (``.btl``): the line ``BEAMCTL-TELEMETRY 1``, an 8-byte little-endian length,
 a JSON header (columns, sample rate, run metadata), then rows of little-endian float64.
-A reader ignores an incomplete last row.
+A reader ignores an incomplete last row (a writer killed mid-write) and says how many bytes
+it ignored.
 """
 
 from __future__ import annotations
@@ -111,7 +112,8 @@ class TelemetryWriter:
 
 
 def read_telemetry(path: str | Path) -> tuple[dict, np.ndarray]:
-    """(header, data [n x columns]) of a telemetry file; an incomplete last row is ignored."""
+    """(header, data [n x columns]) of a telemetry file. An incomplete last row is ignored;
+    ``header["incomplete_row_bytes"]`` gives its length (0 when the file ends on a row)."""
     p = Path(path)
     try:
         raw = p.read_bytes()
@@ -130,13 +132,13 @@ def read_telemetry(path: str | Path) -> tuple[dict, np.ndarray]:
     row_bytes = 8 * len(columns)
     n = len(data) // row_bytes
     rows = np.frombuffer(data[:n * row_bytes], dtype="<f8").reshape(n, len(columns))
+    header["incomplete_row_bytes"] = len(data) - n * row_bytes
     return header, rows.astype(float)
 
 
-def export(path: str | Path, out: str | Path, fmt: str) -> Path:
-    """Convert a telemetry file to MATLAB ``mat`` (one variable per column plus ``columns``
-    and ``meta``) or ``csv`` (a header row of column names)."""
-    header, rows = read_telemetry(path)
+def export(header: dict, rows: np.ndarray, out: str | Path, fmt: str) -> Path:
+    """Write telemetry (as ``read_telemetry`` returns it) as MATLAB ``mat`` (one variable per
+    column plus ``columns`` and ``meta_json``) or ``csv`` (a header row of column names)."""
     out = Path(out)
     if fmt == "mat":
         import scipy.io
@@ -144,7 +146,7 @@ def export(path: str | Path, out: str | Path, fmt: str) -> Path:
         variables = {name: rows[:, i] for i, name in enumerate(header["columns"])}
         variables["columns"] = np.array(header["columns"], dtype=object)
         variables["meta_json"] = json.dumps(header.get("meta", {}))
-        scipy.io.savemat(out, variables, do_compression=True)
+        scipy.io.savemat(out, variables, do_compression=True, appendmat=False)
     elif fmt == "csv":
         np.savetxt(out, rows, delimiter=",", header=",".join(header["columns"]), comments="",
                    fmt="%.10g")

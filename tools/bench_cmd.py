@@ -90,6 +90,7 @@ def can_latency(samples: int = 5000) -> dict:
     from beamctl.models.plant import Plant, plant_config
     from beamctl.rt.allocation import geometry
     from beamctl.rt.loop import ControlLoop
+    from beamctl.tools.experiment import Interrupted
 
     table = load_table(default_table_path())
     config = controller_config({"pacing": "sample"})
@@ -105,11 +106,13 @@ def can_latency(samples: int = 5000) -> dict:
     loop = ControlLoop(Controller(table, config), backend, max_cycles=samples + 50)
     emulator.start(samples + 100)
     try:
-        loop.run(acquire_rt=False)
+        result = loop.run(acquire_rt=False)
     finally:
         emulator.stop()
         backend.close()
         emulator_bus.shutdown()
+    if result.signal_received:
+        raise Interrupted(result.signal_received, "the CAN latency measurement")
     latencies = emulator.latencies[100:samples + 50]
     latencies = latencies[np.isfinite(latencies)]
     budget = bus_budget(backend.contract, table.design.sample_rate_hz, 1e6)

@@ -1,17 +1,48 @@
-"""Entry point of the ``beamctl`` command line."""
+"""Entry point of the ``beamctl`` command line.
+
+Exit status:
+
+- 0: done;
+- 1: a check failed (an unstable gain table, a bus over budget);
+- 2: bad input (a flag, a configuration value, an unreadable input file, an output path that
+  cannot be written), refused in one line on stderr before the work starts;
+- 128 + the signal's number when a signal stopped the command: 130 for Ctrl-C (SIGINT), 143
+  for SIGTERM during a simulated run. ``beamctl run`` is the exception: for the service
+  SIGINT and SIGTERM are the operator's normal stop, and it exits 0;
+- 141 (128 + SIGPIPE, what a shell reports for a tool killed by a closed pipe) when the
+  reader of stdout went away early (``beamctl gains check | head -3``): the output is cut
+  short, quietly.
+"""
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+from typing import NoReturn
 
 from beamctl.gains.build import tool_version
 from beamctl.models.schema import ConfigError
+from beamctl.rt.telemetry import TelemetryError
 from beamctl.tools import bench_cmd, experiment_cmd, gains_cmd, log_cmd, model_cmd, plant_cmd, run_cmd
+from beamctl.tools.experiment import Interrupted
+from beamctl.tools.outputs import OutputPathError
+
+EXIT_BAD_INPUT = 2
+EXIT_SIGINT = 130
+EXIT_BROKEN_PIPE = 141
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse refusing a flag in one line, ``beamctl bus-budget: error: ...``, like every
+    other refusal (``--help`` shows the usage)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message}\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="beamctl",
         description="Active buckling control of a beam-column with piezo-elastic supports.")
     parser.add_argument("--version", action="version", version=f"%(prog)s {tool_version()}")
@@ -26,18 +57,48 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _command_name(args: argparse.Namespace) -> str:
+    """``beamctl gains build``: the command and its action, as the user typed them."""
+    words = [getattr(args, key, None) for key in ("command", "gains_command", "log_command")]
+    return " ".join(["beamctl", *(w for w in words if w)])
+
+
+def _discard_stdout() -> None:
+    """Point stdout at /dev/null so that the interpreter's last flush at exit does not fail
+    again on the closed pipe (the recipe of the ``signal`` module's note on SIGPIPE)."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, ValueError, OSError):    # replaced by a caller (tests): nothing to do
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, fd)
+    os.close(devnull)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run ``beamctl`` with ``argv`` (default: the process arguments); return the exit code."""
-    parser = build_parser()
+    name = "beamctl"
     try:
-        args = parser.parse_args(argv)
-    except SystemExit as exc:          # --help, or a flag argparse refused (it printed why)
-        return int(exc.code or 0)
-    try:
-        return int(args.run(args) or 0)
-    except ConfigError as exc:
-        print(f"beamctl {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        try:
+            args = build_parser().parse_args(argv)
+        except SystemExit as exc:      # --help, or a flag argparse refused (it printed why)
+            return int(exc.code or 0)
+        name = _command_name(args)
+        status = int(args.run(args) or 0)
+        sys.stdout.flush()
+        return status
+    except (ConfigError, OutputPathError, TelemetryError) as exc:
+        print(f"{name}: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except Interrupted as exc:
+        print(f"{name}: interrupted ({exc})", file=sys.stderr)
+        return exc.exit_status
+    except KeyboardInterrupt:
+        print(f"{name}: interrupted (SIGINT)", file=sys.stderr)
+        return EXIT_SIGINT
+    except BrokenPipeError:
+        _discard_stdout()
+        return EXIT_BROKEN_PIPE
 
 
 if __name__ == "__main__":

@@ -9,6 +9,8 @@ Each mode runs the load ramp on a fresh plant with the same scenario and the sam
   an integrator without anti-windup.
 A run ends when the measured deflection passes ``experiment.deflection_limit`` or the ramp
 reaches its end. A controller fault does not end a run: the beam is watched until it fails.
+SIGINT or SIGTERM during a run ramps the stacks to bias (the loop's stop) and raises
+``Interrupted``: a run cut short is no result.
 
 Deflection, as the paper measures it (figure 7): the lateral deflection along the beam
 reconstructed from the strain gauges, Phi (C0 Phi)^-1 y, its largest magnitude. The report
@@ -19,8 +21,8 @@ have no curvature there (0.05 mm at 2000 N with the default bow), which gauges c
 
 from __future__ import annotations
 
-import json
 import math
+import signal
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -86,6 +88,19 @@ class RunTrace:
         return {k: np.asarray(v) for k, v in self.__dict__.items() if isinstance(v, list)}
 
 
+class Interrupted(Exception):
+    """A signal stopped a simulated run (after the loop ramped the stacks to bias)."""
+
+    def __init__(self, signal_name: str, during: str) -> None:
+        self.signal_name = signal_name
+        super().__init__(f"{signal_name} during {during}")
+
+    @property
+    def exit_status(self) -> int:
+        """128 + the signal's number, as a shell reports a command a signal ended."""
+        return 128 + signal.Signals[self.signal_name].value
+
+
 def experiment_config(data: dict | None = None, source: str = "") -> tuple[ServiceConfig, dict]:
     """The scenario over the shipped defaults: (service config, experiment settings)."""
     merged = merge(SCENARIO, data or {})
@@ -120,7 +135,9 @@ def paper_table(cfg: ServiceConfig) -> GainTable:
     return build_table(build_model(cfg.model), mode="paper", check=False)
 
 
-def run_mode(mode: str, cfg: ServiceConfig, settings: dict, out_dir: Path, progress=None) -> RunTrace:
+def run_mode(mode: str, cfg: ServiceConfig, settings: dict, telemetry_dir: Path | None = None,
+             progress=None) -> RunTrace:
+    """One load ramp; full-rate telemetry into ``telemetry_dir/telemetry_<mode>.btl`` if given."""
     table = load_gain_table(cfg) if mode != "paper" else paper_table(cfg)
     controller_cfg = replace(cfg.controller, pacing="sample",
                              anti_windup=cfg.controller.anti_windup if mode == "interpolate" else False)
@@ -132,9 +149,6 @@ def run_mode(mode: str, cfg: ServiceConfig, settings: dict, out_dir: Path, progr
     limit = settings["deflection_limit"]
     ramp = plant.config.load
     end_time = ramp.duration()
-    telemetry = TelemetryWriter.for_controller(out_dir / f"telemetry_{mode}.btl", controller,
-                                               meta={"mode": mode, "scenario": cfg.source}).start()
-    trace.telemetry = str(telemetry.path)
     counter = {"n": 0}
 
     def monitor(loop: ControlLoop) -> None:
@@ -164,13 +178,22 @@ def run_mode(mode: str, cfg: ServiceConfig, settings: dict, out_dir: Path, progr
                 loop.request_stop("end of ramp")
 
     hal.open()
+    telemetry = None
     start = time.perf_counter()
     try:
+        if telemetry_dir is not None:
+            telemetry = TelemetryWriter.for_controller(telemetry_dir / f"telemetry_{mode}.btl", controller,
+                                                       meta={"mode": mode, "scenario": cfg.source}).start()
+            trace.telemetry = str(telemetry.path)
         loop = ControlLoop(controller, hal, telemetry=telemetry, stop_on_fault=False,
                            start=(mode != "uncontrolled"), on_cycle=monitor)
         result = loop.run(acquire_rt=False)
     finally:
         hal.close()
+        if telemetry is not None:
+            telemetry.close()
+    if result.signal_received:
+        raise Interrupted(result.signal_received, f"the {mode} run")
     trace.wall_s = time.perf_counter() - start
     trace.plant_s = plant.time
     trace.fault = result.reason if result.fault != "NONE" else ""
@@ -220,16 +243,17 @@ def summarise(trace: RunTrace) -> dict:
     return out
 
 
-def run_experiment(cfg: ServiceConfig, settings: dict, out_dir: Path, progress=None,
+def run_experiment(cfg: ServiceConfig, settings: dict, telemetry_dir: Path | None = None, progress=None,
                    modes: tuple[str, ...] | None = None) -> tuple[dict, dict[str, RunTrace]]:
-    out_dir.mkdir(parents=True, exist_ok=True)
+    """Run every mode; return the summary and the runs' traces. Full-rate telemetry of each
+    run goes into ``telemetry_dir`` if given."""
     modes = modes or (MODES if settings["paper_mode"] else MODES[:2])
     traces = {}
     for k, mode in enumerate(modes):
         def step(fraction: float, label: str, k=k) -> None:
             if progress:
                 progress(round(1000 * (k + fraction) / len(modes)), 1000, f"run {k + 1}/{len(modes)} {label}")
-        traces[mode] = run_mode(mode, cfg, settings, out_dir, step)
+        traces[mode] = run_mode(mode, cfg, settings, telemetry_dir, step)
     if progress:
         progress(1000, 1000, "done")
     plant_model = build_plant(cfg, load_gain_table(cfg)).model
@@ -246,5 +270,4 @@ def run_experiment(cfg: ServiceConfig, settings: dict, out_dir: Path, progress=N
                            "load_rate_N_per_s": cfg.plant["load"]["rate"],
                            "deflection_limit_mm": 1e3 * settings["deflection_limit"]}
     summary["sim_realtime_factor"] = plant_s / wall_s if wall_s else None
-    (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
     return summary, traces

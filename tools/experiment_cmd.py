@@ -7,8 +7,12 @@ import json
 import time
 from pathlib import Path
 
+from beamctl.tools import plots
 from beamctl.tools.experiment import load_experiment_config, run_experiment
+from beamctl.tools.outputs import check_dir, write_text
 from beamctl.tools.progress import ProgressBar
+
+REPORT_FILES = (*plots.EXPERIMENT_FIGURES, "summary.txt", "summary.json")
 
 PAPER = {"uncontrolled": {"load_at_0.5mm_N": 2438.0, "load_at_1.0mm_N": 2723.0, "buckling_angle_deg": 234.0},
          "controlled": {"load_at_1.0mm_N": 3223.0, "buckling_angle_deg": 128.0}}
@@ -21,6 +25,9 @@ def add_parser(sub) -> None:
                                    "500 N switching; write a report folder.")
     p.add_argument("--config", metavar="F", help="scenario file (plant, controller, model, experiment)")
     p.add_argument("--out", metavar="DIR", default="experiment-report", help="report folder")
+    p.add_argument("--telemetry", action="store_true",
+                   help="also record each run's full-rate telemetry into the report folder "
+                        "(telemetry_<mode>.btl, about 40 MB a run with the default scenario)")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     p.add_argument("--no-paper", action="store_true", help="skip the run with the paper's 500 N switching")
     p.set_defaults(run=run)
@@ -47,27 +54,39 @@ def summary_table(summary: dict) -> str:
     return f"critical load Fx,cr = {summary['critical_load_N']:.0f} N\n" + text
 
 
+def remove_report(out: Path) -> None:
+    """Remove the figures and summaries of a report (never telemetry: a recording is kept)."""
+    for name in REPORT_FILES:
+        (out / name).unlink(missing_ok=True)
+
+
 def run(args: argparse.Namespace) -> int:
     cfg, settings = load_experiment_config(args.config)
     if args.no_paper:
         settings = {**settings, "paper_mode": False}
-    out = Path(args.out)
-    bar = ProgressBar("experiment")
+    out = check_dir(args.out, "--out")
+    # The folder holds one experiment's report: a previous one's figures and summaries go
+    # now, so that a run cut short leaves nothing that could be taken for its result.
+    remove_report(out)
     start = time.monotonic()
-    summary, traces = run_experiment(cfg, settings, out, progress=bar)
-    bar.close()
+    with ProgressBar("experiment") as bar:
+        summary, traces = run_experiment(cfg, settings, out if args.telemetry else None, progress=bar)
+        bar.close()
     summary["wall_time_s"] = time.monotonic() - start
-    from beamctl.tools import plots
-
-    figures = plots.experiment_figures(summary, traces, out)
     table = summary_table(summary)
-    (out / "summary.txt").write_text(table + "\n")
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    try:
+        figures = plots.experiment_figures(summary, traces, out)
+        write_text(out / "summary.txt", table + "\n")
+        write_text(out / "summary.json", json.dumps(summary, indent=1))
+    except BaseException:       # a report is whole or absent
+        remove_report(out)
+        raise
     if args.json:
         print(json.dumps(summary, indent=1))
     else:
         print(table)
         print(f"\n{sum(t.plant_s for t in traces.values()):.0f} s of plant time in "
               f"{summary['wall_time_s']:.1f} s ({summary['sim_realtime_factor']:.1f} x real time)")
-        print(f"report: {out}/ ({', '.join(p.name for p in figures)}, summary.txt, summary.json, telemetry)")
+        recorded = ", telemetry_<mode>.btl" if args.telemetry else ""
+        print(f"report: {out}/ ({', '.join(p.name for p in figures)}, summary.txt, summary.json{recorded})")
     return 0

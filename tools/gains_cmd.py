@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
-from pathlib import Path
 
 import numpy as np
 
@@ -13,6 +13,7 @@ from beamctl.gains.defaults import default_table_path
 from beamctl.gains.table import GainTable, load_table, write_table
 from beamctl.models import build_model, load_parameters
 from beamctl.models.schema import ConfigError
+from beamctl.tools.outputs import check_dir, check_file, replacing
 from beamctl.tools.progress import ProgressBar
 
 
@@ -63,10 +64,12 @@ def _load(file: str | None) -> GainTable:
 
 def run_build(args: argparse.Namespace) -> int:
     grid = parse_grid(args.grid) if args.grid else None
-    model = build_model(load_parameters(args.config))
-    bar = ProgressBar("gains build")
-    table = build_table(model, grid, mode=args.mode, force=args.force, progress=bar)
-    elapsed = bar.close()
+    params = load_parameters(args.config)
+    out = check_file(args.out, "--out")
+    model = build_model(params)
+    with ProgressBar("gains build") as bar:
+        table = build_table(model, grid, mode=args.mode, force=args.force, progress=bar)
+        elapsed = bar.close()
     worst = max(table.checks, key=lambda c: c.spectral_radius)
     print(f"{len(table.loads_n)} grid points {table.loads_n[0]:g}..{table.loads_n[-1]:g} N, "
           f"mode {table.schedule.mode}, {len(table.checks)} closed-loop checks in {elapsed:.1f} s")
@@ -79,18 +82,20 @@ def run_build(args: argparse.Namespace) -> int:
         if not args.force:
             print("table not written (use --force to write it, marked as forced)")
             return 1
-    path = write_table(table, args.out)
-    print(f"wrote {path}{' (forced: unstable points)' if table.forced and not table.all_stable else ''}")
+    with replacing(out) as temp:      # the service never reads half a table
+        write_table(table, temp)
+    print(f"wrote {out}{' (forced: unstable points)' if table.forced and not table.all_stable else ''}")
     return 0
 
 
 def run_check(args: argparse.Namespace) -> int:
     table = _load(args.file)
     model = build_model(table.model_parameters)
-    bar = ProgressBar("gains check") if not args.json else None
-    checks = closed_loop_checks(model, table, progress=bar)
-    if bar:
-        bar.close()
+    bar = None if args.json else ProgressBar("gains check")
+    with bar or contextlib.nullcontext():
+        checks = closed_loop_checks(model, table, progress=bar)
+        if bar:
+            bar.close()
     all_stable = all(c.stable for c in checks)
     if args.json:
         print(json.dumps({
@@ -107,6 +112,7 @@ def run_check(args: argparse.Namespace) -> int:
 
 
 def run_show(args: argparse.Namespace) -> int:
+    plot_dir = check_dir(args.plot, "--plot") if args.plot else None
     table = _load(args.file)
     d, s = table.design, table.schedule
     print(f"gain table: {args.file or default_table_path()}")
@@ -126,9 +132,9 @@ def run_show(args: argparse.Namespace) -> int:
     step = max(1, len(table.loads_n) // 16)
     for i in range(0, len(table.loads_n), step):
         print(f"{table.loads_n[i]:8.0f} " + " ".join(f"{table.gains[i, 0, c]:11.4g}" for c in cols))
-    if args.plot:
+    if plot_dir:
         from beamctl.tools import plots
 
-        path = plots.gains_vs_load(table, Path(args.plot) / "gains_vs_load.png")
+        path = plots.gains_vs_load(table, plot_dir / "gains_vs_load.png")
         print(f"\nwrote {path}")
     return 0

@@ -6,7 +6,10 @@ import argparse
 import sys
 from pathlib import Path
 
-from beamctl.rt.telemetry import TelemetryError, export, read_telemetry
+import numpy as np
+
+from beamctl.rt.telemetry import export, read_telemetry
+from beamctl.tools.outputs import OutputPathError, check_dir, check_file, replacing
 
 
 def add_parser(sub) -> None:
@@ -23,26 +26,34 @@ def add_parser(sub) -> None:
     pl.set_defaults(run=run_plot)
 
 
+def _read(file: str, command: str) -> tuple[dict, np.ndarray]:
+    """The recording; a warning when it ends in an incomplete row (its complete rows are used)."""
+    header, rows = read_telemetry(file)
+    ignored = header["incomplete_row_bytes"]
+    if ignored:
+        print(f"beamctl log {command}: warning: {file} holds {len(rows)} complete rows and ends in an "
+              f"incomplete row ({ignored} bytes ignored: the recording was cut off mid-write)",
+              file=sys.stderr)
+    return header, rows
+
+
 def run_export(args: argparse.Namespace) -> int:
-    out = Path(args.out) if args.out else Path(args.file).with_suffix("." + args.to)
-    try:
-        header, rows = read_telemetry(args.file)
-        path = export(args.file, out, args.to)
-    except TelemetryError as exc:
-        print(f"beamctl log export: error: {exc}", file=sys.stderr)
-        return 2
-    print(f"wrote {path} ({len(rows)} samples x {len(header['columns'])} columns)")
+    what = "--out" if args.out else "--out (default)"
+    out = check_file(args.out or Path(args.file).with_suffix("." + args.to), what)
+    if out.resolve() == Path(args.file).resolve():
+        raise OutputPathError(what, out, "it is the telemetry file being exported")
+    header, rows = _read(args.file, "export")
+    with replacing(out) as temp:
+        export(header, rows, temp, args.to)
+    print(f"wrote {out} ({len(rows)} samples x {len(header['columns'])} columns)")
     return 0
 
 
 def run_plot(args: argparse.Namespace) -> int:
     from beamctl.tools import plots
 
-    try:
-        header, rows = read_telemetry(args.file)
-    except TelemetryError as exc:
-        print(f"beamctl log plot: error: {exc}", file=sys.stderr)
-        return 2
-    for path in plots.telemetry_figures(header, rows, Path(args.dir)):
+    out_dir = check_dir(args.dir, "DIR")
+    header, rows = _read(args.file, "plot")
+    for path in plots.telemetry_figures(header, rows, out_dir):
         print(f"wrote {path}")
     return 0

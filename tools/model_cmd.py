@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
 
 import numpy as np
 
 from beamctl.models import build_model, critical_load, eigenfrequencies, load_parameters, reduce
 from beamctl.models.fe import FEModel
 from beamctl.models.modal import ModalModel
+from beamctl.tools.outputs import check_dir
 
 TABLE_LOADS_N = (0, 500, 1000, 1500, 2000, 2500, 3000)
 FIGURE6_LOAD_N = 2000.0
@@ -67,6 +67,7 @@ def print_table(s: dict, source: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     params = load_parameters(args.config)
+    plot_dir = check_dir(args.plot, "--plot") if args.plot else None
     model = build_model(params)
     reduced = reduce(model)
     s = summary(model, reduced)
@@ -74,15 +75,14 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(s, indent=2))
     else:
         print_table(s, args.config or "paper defaults (models/paper.yaml)")
-    if args.plot:
+    if plot_dir:
         from beamctl.tools import plots
 
-        out = Path(args.plot)
         written = [
-            plots.eigenfrequencies_vs_load(model, reduced, out / "fig5b_eigenfrequencies.png"),
+            plots.eigenfrequencies_vs_load(model, reduced, plot_dir / "fig5b_eigenfrequencies.png"),
             plots.frequency_response_full_vs_reduced(
                 model, reduced, FIGURE6_LOAD_N, np.linspace(0.0, 1200.0, 2401),
-                out / "fig6_frequency_response.png"),
+                plot_dir / "fig6_frequency_response.png"),
         ]
         if not args.json:
             print()

@@ -10,6 +10,7 @@ import threading
 
 from beamctl.hal.base import HalConfigurationError
 from beamctl.hal.budget import LIMIT, bus_budget
+from beamctl.hal.config import check_bitrates
 from beamctl.hal.dbc import Contract
 from beamctl.models.schema import ConfigError
 from beamctl.tools.argtypes import positive, seconds
@@ -76,6 +77,8 @@ def run_plant(args: argparse.Namespace) -> int:
 
 
 def run_budget(args: argparse.Namespace) -> int:
+    # the data phase's rate is checked even without --fd: the CAN FD comparison uses it
+    check_bitrates(args.bitrate, args.data_bitrate, True, ("--bitrate", "--data-bitrate"))
     try:
         contract = Contract(args.dbc)
     except HalConfigurationError as exc:

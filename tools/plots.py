@@ -10,6 +10,11 @@ from beamctl.models import critical_load, eigenfrequencies, fe_frequency_respons
 from beamctl.models.fe import FEModel
 from beamctl.models.modal import ModalModel
 from beamctl.models.schema import ConfigError
+from beamctl.tools.outputs import replacing
+
+# the figures of ``beamctl experiment``'s report
+FIG7A, FIG7B, VOLTAGES = "fig7a_deflection_vs_load.png", "fig7b_path_yz.png", "voltages_vs_load.png"
+EXPERIMENT_FIGURES = (FIG7A, FIG7B, VOLTAGES)
 
 
 def _pyplot():
@@ -35,13 +40,13 @@ def _finish(fig, ax, path: Path, *, xlabel: str, ylabel: str, title: str,
 
 
 def _save(fig, path: Path) -> Path:
-    path = Path(path)
-    if path.parent.exists() and not path.parent.is_dir():
-        raise ConfigError("--plot", str(path.parent), "a directory (it is a file)")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    _pyplot().close(fig)
-    return path
+    """Save the figure whole (never half a PNG, even when interrupted) and close it."""
+    try:
+        with replacing(path) as temp:
+            fig.savefig(temp, dpi=120)
+    finally:
+        _pyplot().close(fig)
+    return Path(path)
 
 
 def eigenfrequencies_vs_load(model: FEModel, reduced: ModalModel, path: Path) -> Path:
@@ -188,7 +193,7 @@ def experiment_figures(summary: dict, traces: dict, out_dir: Path) -> list[Path]
     ax.axhline(1.0, color="0.7", lw=0.6)
     ax.set_xlim(0, max(3600, max(max(t.load_n) for t in traces.values()) + 100))
     ax.set_ylim(0, 1.6)
-    paths.append(_finish(fig, ax, Path(out_dir) / "fig7a_deflection_vs_load.png",
+    paths.append(_finish(fig, ax, Path(out_dir) / FIG7A,
                          xlabel="axial load Fx in N", ylabel="largest lateral deflection in mm",
                          title="(a) deflection versus axial load (figure 7a)",
                          legend={"fontsize": 7, "loc": "upper left"}))
@@ -205,7 +210,7 @@ def experiment_figures(summary: dict, traces: dict, out_dir: Path) -> list[Path]
     ax.set_aspect("equal")
     ax.axhline(0, color="0.7", lw=0.6)
     ax.axvline(0, color="0.7", lw=0.6)
-    paths.append(_finish(fig, ax, Path(out_dir) / "fig7b_path_yz.png", xlabel="deflection in y in mm",
+    paths.append(_finish(fig, ax, Path(out_dir) / FIG7B, xlabel="deflection in y in mm",
                          ylabel="deflection in z in mm", title="(b) path in the y-z plane (figure 7b)",
                          legend={"fontsize": 7, "loc": "upper left"}))
 
@@ -221,7 +226,7 @@ def experiment_figures(summary: dict, traces: dict, out_dir: Path) -> list[Path]
     for limit in (0.0, 150.0):
         ax.axhline(limit, color="tab:red", lw=0.8, ls="--")
     ax.set_ylim(-5, 155)
-    paths.append(_finish(fig, ax, Path(out_dir) / "voltages_vs_load.png", xlabel="axial load Fx in N",
+    paths.append(_finish(fig, ax, Path(out_dir) / VOLTAGES, xlabel="axial load Fx in N",
                          ylabel="stack voltage in V",
                          title="Piezo stack voltages versus load (limits 0 and 150 V)",
                          legend={"fontsize": 7, "loc": "lower left"}))

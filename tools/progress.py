@@ -9,7 +9,8 @@ from typing import TextIO
 
 
 class ProgressBar:
-    """Call with (done, total, label); ``close()`` ends the line."""
+    """Call with (done, total, label); ``close()`` ends the line. As a context manager, an
+    error or interruption inside the block ends the line too (without "done")."""
 
     def __init__(self, title: str, stream: TextIO | None = None, width: int = 30) -> None:
         self.title = title
@@ -46,4 +47,15 @@ class ProgressBar:
         if self.tty and self._open:
             self.stream.write(f"\r{self.title}: done in {elapsed:.1f} s{' ' * (self.width + 30)}\n")
             self.stream.flush()
+        self._open = False
         return elapsed
+
+    def __enter__(self) -> ProgressBar:
+        return self
+
+    def __exit__(self, exc_type, *_) -> None:
+        """Left by an error or Ctrl-C: end the bar's line, so that the message has its own."""
+        if exc_type is not None and self.tty and self._open:
+            self.stream.write("\n")
+            self.stream.flush()
+        self._open = False

@@ -24,6 +24,7 @@ from beamctl.rt.controller import Controller
 from beamctl.rt.loop import ControlLoop
 from beamctl.rt.telemetry import TelemetryWriter
 from beamctl.tools.argtypes import seconds
+from beamctl.tools.outputs import check_file
 from beamctl.tools.sdnotify import Notifier
 from beamctl.tools.service import build_hal, load_gain_table, load_service_config
 
@@ -56,8 +57,21 @@ def _check_voltage_range(cfg, hal) -> None:
                               f"([{signal_range.minimum:g}, {signal_range.maximum:g}] V)", cfg.source)
 
 
+def _output_paths(args: argparse.Namespace, cfg) -> Path:
+    """The telemetry file, and the CAN recording if one is configured, checked; return the
+    telemetry file."""
+    if cfg.hal.backend == "can" and cfg.hal.can["record"]:
+        check_file(cfg.hal.can["record"], f"{cfg.source}: hal.can.record")
+    if args.telemetry:
+        return check_file(args.telemetry, "--telemetry")
+    if cfg.telemetry:
+        return check_file(cfg.telemetry, f"{cfg.source}: run.telemetry")
+    return check_file(time.strftime("beamctl-%Y%m%d-%H%M%S.btl"), "telemetry")
+
+
 def run(args: argparse.Namespace) -> int:
     cfg = load_service_config(args.config)
+    path = _output_paths(args, cfg)
     table = load_gain_table(cfg)
     if table.forced:
         raise ConfigError("gains.table", str(cfg.table_path),
@@ -70,13 +84,25 @@ def run(args: argparse.Namespace) -> int:
         return 2
     _check_voltage_range(cfg, hal)
     controller = Controller(table, cfg.controller)
-    path = Path(args.telemetry or cfg.telemetry or time.strftime("beamctl-%Y%m%d-%H%M%S.btl"))
-    telemetry = TelemetryWriter.for_controller(
-        path, controller, meta={"config": cfg.source, "gain_table": str(cfg.table_path),
-                                "model_sha256": table.model_sha256, "backend": cfg.hal.backend})
-    telemetry.start()   # before the loop asks for SCHED_FIFO: the writer must not inherit it
     duration = cfg.duration if args.duration is None else args.duration
     max_cycles = int(duration * table.design.sample_rate_hz) if duration else None
+    # the banner goes to stderr with the other messages: stdout carries the summary alone
+    print(f"beamctl run: {cfg.hal.backend} backend, {table.design.sample_rate_hz:g} Hz, "
+          f"{cfg.controller.pacing} pacing, gain table {cfg.table_path}, telemetry {path}", file=sys.stderr)
+    try:
+        hal.open()
+    except HalError as exc:
+        print(f"beamctl run: error: {exc}", file=sys.stderr)
+        return 2
+    # Telemetry starts once the HAL is open (no empty recording of a run that never started)
+    # and before the loop asks for SCHED_FIFO (the writer thread must not inherit it).
+    try:
+        telemetry = TelemetryWriter.for_controller(
+            path, controller, meta={"config": cfg.source, "gain_table": str(cfg.table_path),
+                                    "model_sha256": table.model_sha256, "backend": cfg.hal.backend}).start()
+    except BaseException:
+        hal.close()
+        raise
 
     def on_cycle(loop: ControlLoop) -> None:
         notifier.feed()
@@ -85,14 +111,6 @@ def run(args: argparse.Namespace) -> int:
                        max_cycles=max_cycles, on_cycle=on_cycle if notifier.watchdog_interval else None)
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGUSR1, lambda *_: loop.request_rearm())
-    print(f"beamctl run: {cfg.hal.backend} backend, {table.design.sample_rate_hz:g} Hz, "
-          f"{cfg.controller.pacing} pacing, gain table {cfg.table_path}, telemetry {path}", flush=True)
-    try:
-        hal.open()
-    except HalError as exc:
-        telemetry.close()
-        print(f"beamctl run: error: {exc}", file=sys.stderr)
-        return 2
     notifier.ready(f"running at {table.design.sample_rate_hz:g} Hz")
     try:
         result = loop.run(require_rt=args.require_rt)

@@ -124,6 +124,21 @@ def test_sigterm_ramps_to_bias_and_stops(table):
     _assert_safe_ramp(hal)
 
 
+def test_a_signal_during_the_ramp_of_another_stop_is_still_reported(table):
+    """The caller learns of the operator's signal even when the run was already stopping."""
+    loop, hal = _loop(table, [], default=oscillating, max_cycles=300)
+
+    def signal_in_the_ramp(loop):
+        if loop.cycles == 310:
+            signal.raise_signal(signal.SIGINT)
+
+    loop.on_cycle = signal_in_the_ramp
+    result = _run(loop)
+    assert result.stop_requested_by == "cycle limit" and result.signal_received == "SIGINT"
+    assert result.state == "STOPPED"
+    _assert_safe_ramp(hal)
+
+
 def test_write_failure_faults(table):
     loop, hal = _loop(table, [], fail_write_after=300, default=oscillating)
     result = _run(loop)

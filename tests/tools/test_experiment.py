@@ -2,13 +2,19 @@
 instead of 50 N/s; the loads at 0.5 mm and 1.0 mm move by less than 0.3 %)."""
 
 import json
+import signal
 
 import pytest
 
 from beamctl.models.schema import ConfigError
+from beamctl.rt.controller import COL
+from beamctl.rt.safety import State
 from beamctl.rt.telemetry import read_telemetry
+from beamctl.tools import experiment_cmd, plots
 from beamctl.tools.cli import main
-from beamctl.tools.experiment import BOW_AMPLITUDE_M, experiment_config
+from beamctl.tools.experiment import BOW_AMPLITUDE_M, Interrupted, experiment_config, run_mode
+from beamctl.tools.experiment_cmd import REPORT_FILES
+from tests.tools.processes import beamctl, interrupt_when
 
 CRITICAL_LOAD_N = 3193.5
 
@@ -23,7 +29,8 @@ def report(tmp_path_factory):
 
     buffer = io.StringIO()
     with contextlib.redirect_stdout(buffer):
-        code = main(["experiment", "--config", str(scenario), "--out", str(out / "report"), "--json"])
+        code = main(["experiment", "--config", str(scenario), "--out", str(out / "report"), "--json",
+                     "--telemetry"])
     assert code == 0
     return json.loads(buffer.getvalue()), out / "report"
 
@@ -98,3 +105,69 @@ def test_bad_scenario_is_refused_naming_the_key(tmp_path, capsys, data, key):
         from beamctl.tools.service import build_plant, load_gain_table
 
         build_plant(cfg, load_gain_table(cfg))
+
+
+def _scenario(tmp_path, load: str) -> str:
+    f = tmp_path / "scenario.yaml"
+    f.write_text(f"plant:\n  load: {load}\n")
+    return str(f)
+
+
+def test_full_rate_telemetry_is_recorded_only_when_asked(tmp_path, capsys):
+    scenario = _scenario(tmp_path, "{start: 260.0, end: 500.0, rate: 200.0, hold: 0.0}")
+    out = tmp_path / "report"
+    assert main(["experiment", "--config", scenario, "--out", str(out), "--no-paper", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert sorted(p.name for p in out.iterdir()) == sorted(REPORT_FILES), "figures and summaries only"
+    assert summary["controlled"]["telemetry"] == "" and summary["uncontrolled"]["telemetry"] == ""
+
+
+def test_a_signal_during_a_run_ramps_to_bias_and_raises_interrupted(tmp_path):
+    """SIGINT as the operator's Ctrl-C, delivered while the loop runs (from its own progress
+    report): the run ends through the loop's ramp to bias, and is no result."""
+    cfg, settings = experiment_config({"plant": {"load": {"start": 260.0, "end": 400.0, "rate": 200.0}}})
+
+    def ctrl_c(fraction, label):
+        signal.raise_signal(signal.SIGINT)
+
+    with pytest.raises(Interrupted) as info:
+        run_mode("uncontrolled", cfg, settings, tmp_path, progress=ctrl_c)
+    assert str(info.value) == "SIGINT during the uncontrolled run" and info.value.exit_status == 130
+    header, rows = read_telemetry(tmp_path / "telemetry_uncontrolled.btl")
+    assert len(rows) > 500, "what was recorded is kept"
+    assert rows[-1, COL["state"]] == State.STOPPED, "the loop stopped through its ramp"
+
+
+def test_ctrl_c_while_the_report_is_written_leaves_no_report(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "report"
+    out.mkdir()
+    (out / "summary.txt").write_text("an earlier experiment's summary")
+    (out / "telemetry_paper.btl").write_bytes(b"an earlier recording")
+
+    def one_figure_then_ctrl_c(summary, traces, out_dir):
+        (out_dir / plots.FIG7A).write_bytes(b"a complete figure")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(experiment_cmd, "run_experiment", lambda *a, **k: ({"critical_load_N": 3193.5}, {}))
+    monkeypatch.setattr(plots, "experiment_figures", one_figure_then_ctrl_c)
+    assert main(["experiment", "--out", str(out)]) == 130
+    assert capsys.readouterr().err.splitlines()[-1] == "beamctl experiment: interrupted (SIGINT)"
+    assert sorted(p.name for p in out.iterdir()) == ["telemetry_paper.btl"], "recordings are never deleted"
+
+
+def test_ctrl_c_during_the_experiment_exits_130_with_no_summary_or_figure(tmp_path):
+    """The real thing: ``beamctl experiment`` in its own process, SIGINT once it reports
+    progress from inside the first run."""
+    scenario = _scenario(tmp_path, "{start: 260.0, end: 4000.0, rate: 20.0}")   # minutes of plant time
+    out = tmp_path / "report"
+    process = beamctl("experiment", "--config", scenario, "--out", str(out), "--telemetry", cwd=tmp_path)
+    status, err = interrupt_when(process, b"experiment:")
+    assert status == 130, err
+    last = err.splitlines()[-1]
+    assert last.startswith("beamctl experiment: interrupted (SIGINT"), err
+    assert "Traceback" not in err
+    left = sorted(p.name for p in out.iterdir())
+    assert not set(left) & set(REPORT_FILES), f"no summary or figure of a run cut short: {left}"
+    assert left and all(name.startswith("telemetry_") for name in left), left
+    for name in left:
+        read_telemetry(out / name)

@@ -54,3 +54,47 @@ def test_a_file_that_is_not_telemetry_is_refused(tmp_path, capsys):
     bad.write_text("hello")
     assert main(["log", "export", str(bad), "--to", "csv"]) == 2
     assert "not a beamctl telemetry file" in capsys.readouterr().err
+
+
+@pytest.fixture
+def cut_off(recording, tmp_path):
+    """The recording as a process killed mid-write leaves it: the last row lacks 100 bytes."""
+    path = tmp_path / "cut.btl"
+    path.write_bytes(recording.read_bytes()[:-100])
+    return path
+
+
+def _warning(err: str, rows: int, ignored: int) -> None:
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert "warning" in err and f"holds {rows} complete rows" in err, err
+    assert f"ends in an incomplete row ({ignored} bytes ignored" in err, err
+
+
+def test_export_of_a_file_cut_off_mid_row_keeps_the_complete_rows_and_warns(recording, cut_off, tmp_path,
+                                                                            capsys):
+    _, rows = read_telemetry(recording)
+    out = tmp_path / "cut.csv"
+    assert main(["log", "export", str(cut_off), "--to", "csv", "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    _warning(captured.err, len(rows) - 1, 8 * len(RECORD_COLUMNS) - 100)
+    assert len(out.read_text().splitlines()) == 1 + len(rows) - 1
+    assert f"wrote {out} ({len(rows) - 1} samples" in captured.out
+
+
+def test_plot_of_a_file_cut_off_mid_row_warns_too(recording, cut_off, tmp_path, capsys):
+    _, rows = read_telemetry(recording)
+    assert main(["log", "plot", str(cut_off), str(tmp_path / "figs")]) == 0
+    _warning(capsys.readouterr().err, len(rows) - 1, 8 * len(RECORD_COLUMNS) - 100)
+    assert (tmp_path / "figs" / "voltages.png").exists()
+
+
+def test_a_complete_file_exports_without_a_warning(recording, tmp_path, capsys):
+    assert main(["log", "export", str(recording), "--to", "mat", "--out", str(tmp_path / "run.mat")]) == 0
+    assert capsys.readouterr().err == ""
+
+
+def test_export_writes_the_file_it_names(recording, tmp_path):
+    """scipy would add .mat to a name without it; the file is where --out says."""
+    out = tmp_path / "run.matlab"
+    assert main(["log", "export", str(recording), "--to", "mat", "--out", str(out)]) == 0
+    assert "q_1y" in scipy.io.loadmat(out) and not (tmp_path / "run.matlab.mat").exists()

@@ -42,3 +42,22 @@ def test_bus_budget_says_what_fits(capsys):
     out = capsys.readouterr().out
     assert "70.6 %" in out and "2834 Hz" in out and "6105 Hz" in out
     assert main(["bus-budget", "--rate", "3000"]) == 1
+
+
+@pytest.mark.parametrize(("argv", "flag", "value", "expected"), [
+    (["--bitrate", "1"], "--bitrate", "1.0", "from 10 kbit/s to 1 Mbit/s"),
+    (["--bitrate", "2e6"], "--bitrate", "2000000.0", "from 10 kbit/s to 1 Mbit/s"),
+    (["--fd", "--data-bitrate", "16e6"], "--data-bitrate", "16000000.0", "to 8 Mbit/s"),
+    (["--fd", "--bitrate", "500e3", "--data-bitrate", "250e3"], "--data-bitrate", "250000.0",
+     "from the arbitration rate (500 kbit/s)"),
+])
+def test_a_bit_rate_no_can_bus_has_is_refused(argv, flag, value, expected, capsys):
+    assert main(["bus-budget", *argv]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert err.startswith(f"beamctl bus-budget: error: {flag} = {value}: expected") and expected in err, err
+
+
+def test_the_slowest_and_fastest_can_rates_are_accepted(capsys):
+    assert main(["bus-budget", "--bitrate", "10e3", "--rate", "10"]) == 0
+    assert main(["bus-budget", "--fd", "--bitrate", "1e6", "--data-bitrate", "8e6"]) == 0

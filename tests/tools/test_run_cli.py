@@ -1,5 +1,9 @@
 """``beamctl run``: the service, its refusals and its operator re-arm."""
 
+import json
+import signal
+import time
+
 import can
 import numpy as np
 import pytest
@@ -10,6 +14,7 @@ from beamctl.rt.controller import COL
 from beamctl.rt.telemetry import read_telemetry
 from beamctl.tools.cli import main
 from tests.hal.rigs import GEOMETRY, IN_PROCESS_STALE_PERIODS, make_plant
+from tests.tools.processes import beamctl
 
 
 def _config(tmp_path, **sections):
@@ -69,9 +74,7 @@ def test_service_against_the_plant_emulator_over_virtual_can(tmp_path, capsys):
     finally:
         emulator.stop()
         bus.shutdown()
-    import json
-
-    summary = json.loads(capsys.readouterr().out.split("\n", 1)[1])
+    summary = json.loads(capsys.readouterr().out)
     assert summary["state"] == "STOPPED", summary["reason"]
     assert summary["hal"]["sequence_gaps"] == 0
     assert summary["hal"]["bus_load_percent"] == pytest.approx(70.6, abs=0.1)
@@ -94,9 +97,7 @@ def test_a_run_longer_than_the_telemetry_ring_loses_nothing(tmp_path, capsys):
                                "hal": {"backend": "sim", "sim": {"pace": "wallclock"}},
                                "run": {"telemetry": str(tel), "duration": 1.5}})
     assert main(["run", "--config", cfg, "--json"]) == 0
-    import json
-
-    summary = json.loads(capsys.readouterr().out.split("\n", 1)[1])
+    summary = json.loads(capsys.readouterr().out)
     assert summary["telemetry"]["dropped"] == 0
     _, rows = read_telemetry(tel)
     assert len(rows) == summary["cycles"] == summary["telemetry"]["written"]
@@ -128,3 +129,31 @@ def test_bad_flags_are_refused_with_exit_2(argv, capsys):
 def test_a_single_point_grid_cannot_be_interpolated(tmp_path, capsys):
     assert main(["gains", "build", "--grid", "100:100:1", "--out", str(tmp_path / "g.yaml")]) == 2
     assert "--grid" in capsys.readouterr().err and not (tmp_path / "g.yaml").exists()
+
+
+def test_json_prints_exactly_one_object_and_the_banner_goes_to_stderr(tmp_path, capsys):
+    cfg = _config(tmp_path, **SIM, run={"telemetry": str(tmp_path / "run.btl"), "duration": 0.1})
+    assert main(["run", "--config", cfg, "--json"]) == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["state"] == "STOPPED"
+    assert captured.err.startswith("beamctl run: sim backend")
+
+
+def test_ctrl_c_is_the_operator_s_stop_and_exits_0(tmp_path):
+    """For the service SIGINT is a normal stop: ramp to bias, flush telemetry, exit 0."""
+    tel = tmp_path / "run.btl"
+    cfg = _config(tmp_path, **{**SIM, "hal": {"backend": "sim", "sim": {"pace": "wallclock"}},
+                               "run": {"telemetry": str(tel), "duration": 0}})
+    process = beamctl("run", "--config", cfg, cwd=tmp_path)
+    try:
+        deadline = time.monotonic() + 300
+        # the loop is running (and handles SIGINT) once its records reach the file
+        while not (tel.exists() and len(read_telemetry(tel)[1]) > 0):
+            assert process.poll() is None and time.monotonic() < deadline, process.communicate()
+            time.sleep(0.05)
+        process.send_signal(signal.SIGINT)
+        out, err = process.communicate(timeout=300)
+    finally:
+        process.kill()
+    assert process.returncode == 0, err
+    assert b"stopped by SIGINT" in out and b"ended STOPPED" in out and b"Traceback" not in err

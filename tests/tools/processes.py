@@ -1,0 +1,31 @@
+"""``beamctl`` in a process of its own, for what only a real process shows: signals, pipes."""
+
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+
+def beamctl(*argv: str, cwd: Path, **kwargs) -> subprocess.Popen:
+    """``beamctl`` in its own process (stdout and stderr piped)."""
+    return subprocess.Popen([sys.executable, "-m", "beamctl.tools.cli", *argv], cwd=cwd,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, **kwargs)
+
+
+def interrupt_when(process: subprocess.Popen, marker: bytes, timeout_s: float = 300.0) -> tuple[int, str]:
+    """Send SIGINT once ``marker`` appears on the process's stderr (it is working); return the
+    exit status and all of stderr. A process that never shows the marker is killed."""
+    watchdog = threading.Timer(timeout_s, process.kill)
+    watchdog.start()
+    try:
+        err = b""
+        for line in process.stderr:
+            err += line
+            if marker in line:
+                process.send_signal(signal.SIGINT)
+                break
+        rest = process.communicate(timeout=timeout_s)[1]
+    finally:
+        watchdog.cancel()
+    return process.returncode, (err + rest).decode()

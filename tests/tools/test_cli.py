@@ -1,0 +1,195 @@
+"""The command line under bad input and interruption: one line on stderr, the documented exit
+status, never a traceback, never a half-written file."""
+
+import fcntl
+from pathlib import Path
+
+import pytest
+import yaml
+
+from beamctl.tools import experiment_cmd, gains_cmd, log_cmd, model_cmd, run_cmd
+from beamctl.tools.cli import main
+from tests.tools.processes import beamctl, interrupt_when
+
+UNWRITABLE = Path("/sys")      # refuses new files even to root
+
+
+def _no_work(*_args, **_kwargs):
+    raise AssertionError("the work started before the output path was checked")
+
+
+def _one_line_error(capsys, *needles) -> str:
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    for needle in needles:
+        assert str(needle) in err, err
+    return err
+
+
+# -- output paths, checked before the work starts --------------------------------------------------
+
+def _config(tmp_path, data) -> str:
+    f = tmp_path / "service.yaml"
+    f.write_text(yaml.safe_dump(data))
+    return str(f)
+
+
+# the command, its argv with the output path, what the message calls the path, the work that
+# must not start
+COMMANDS = {
+    "experiment --out": ("experiment", lambda p, tmp: ["experiment", "--out", p], "--out",
+                         (experiment_cmd, "run_experiment")),
+    "gains build --out": ("gains build", lambda p, tmp: ["gains", "build", "--out", p], "--out",
+                          (gains_cmd, "build_table")),
+    "model --plot": ("model", lambda p, tmp: ["model", "--plot", p], "--plot", (model_cmd, "build_model")),
+    "gains show --plot": ("gains show", lambda p, tmp: ["gains", "show", "--plot", p], "--plot",
+                          (gains_cmd, "_load")),
+    "log export --out": ("log export", lambda p, tmp: ["log", "export", str(tmp / "run.btl"), "--to", "csv",
+                                                       "--out", p], "--out", (log_cmd, "read_telemetry")),
+    "log plot DIR": ("log plot", lambda p, tmp: ["log", "plot", str(tmp / "run.btl"), p], "DIR",
+                     (log_cmd, "read_telemetry")),
+    "run --telemetry": ("run", lambda p, tmp: ["run", "--config", _config(tmp, {}), "--telemetry", p],
+                        "--telemetry", (run_cmd, "load_gain_table")),
+    "run.telemetry": ("run", lambda p, tmp: ["run", "--config", _config(tmp, {"run": {"telemetry": p}})],
+                      "service.yaml: run.telemetry", (run_cmd, "load_gain_table")),
+}
+DIRECTORY_FLAGS = {"experiment --out", "model --plot", "gains show --plot", "log plot DIR"}
+
+
+def _bad_path(kind: str, command: str, tmp: Path) -> tuple[Path, str]:
+    """A path of ``kind`` that ``command`` cannot write, and the reason its refusal gives."""
+    (tmp / "a-file").write_text("")
+    if kind == "wrong kind":
+        if command in DIRECTORY_FLAGS:
+            return tmp / "a-file", "it is a file, not a directory"
+        return tmp, "it is a directory"
+    if kind == "file as parent":
+        return tmp / "a-file" / "out" / "x.png", f"{tmp / 'a-file'} is not a directory"
+    return UNWRITABLE / "beamctl-report" / "x.out", ""       # permission denied, or a read-only /sys
+
+
+@pytest.mark.parametrize("kind", ["wrong kind", "file as parent", "no permission"])
+@pytest.mark.parametrize("command", sorted(COMMANDS))
+def test_an_output_path_that_cannot_be_written_is_refused_before_the_work(command, kind, tmp_path,
+                                                                          monkeypatch, capsys):
+    name, argv, what, (module, work) = COMMANDS[command]
+    monkeypatch.setattr(module, work, _no_work)
+    monkeypatch.chdir(tmp_path)
+    path, why = _bad_path(kind, command, tmp_path)
+    args = argv(str(path), tmp_path)
+    before = sorted(tmp_path.rglob("*"))
+    assert main(args) == 2
+    err = _one_line_error(capsys, f"{what} {path}: cannot write there ({why}")
+    assert why or "(permission denied)" in err or "(read-only file system)" in err, err
+    assert err.startswith(f"beamctl {name}: error: "), err
+    assert sorted(tmp_path.rglob("*")) == before, "a refused command leaves nothing behind"
+
+
+def test_a_refused_experiment_leaves_no_report_folder(tmp_path, capsys):
+    config = tmp_path / "bad.yaml"
+    config.write_text("plant: {load: {rate: -1}}\n")
+    argv = ["experiment", "--config", str(config), "--out", str(tmp_path / "report"), "--telemetry"]
+    assert main(argv) == 2
+    _one_line_error(capsys, "plant.load.rate")
+    assert not (tmp_path / "report").exists()
+
+
+def test_export_s_default_output_is_checked_too(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(log_cmd, "read_telemetry", _no_work)
+    (tmp_path / "run.csv").mkdir()
+    assert main(["log", "export", str(tmp_path / "run.btl"), "--to", "csv"]) == 2
+    _one_line_error(capsys, "--out (default)", tmp_path / "run.csv", "it is a directory")
+
+
+def test_export_never_overwrites_the_recording_it_reads(tmp_path, capsys):
+    recording = tmp_path / "run.csv"
+    recording.write_bytes(b"recorded")
+    assert main(["log", "export", str(recording), "--to", "csv"]) == 2
+    _one_line_error(capsys, "it is the telemetry file being exported")
+    assert recording.read_bytes() == b"recorded"
+
+
+def test_a_service_whose_hal_cannot_open_leaves_no_empty_recording(tmp_path, capsys):
+    telemetry = tmp_path / "logs" / "run.btl"
+    config = _config(tmp_path, {"hal": {"backend": "can", "can": {"interface": "socketcan",
+                                                                   "channel": "beamctl-none0"}},
+                                "run": {"telemetry": str(telemetry)}})
+    assert main(["run", "--config", config]) == 2
+    assert "cannot open socketcan:beamctl-none0" in capsys.readouterr().err
+    assert not (tmp_path / "logs").exists()
+
+
+def test_a_can_recording_path_is_checked_with_the_telemetry(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(run_cmd, "load_gain_table", _no_work)
+    config = _config(tmp_path, {"hal": {"backend": "can", "can": {"record": str(tmp_path)}}})
+    assert main(["run", "--config", config]) == 2
+    _one_line_error(capsys, "hal.can.record", "it is a directory")
+
+
+# -- flags -----------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize(("argv", "needle"), [
+    (["gains", "build", "--mode", "fast"], "--mode"),
+    (["bus-budget", "--rate", "fast"], "--rate"),
+    (["experiment", "--no-such-flag"], "--no-such-flag"),
+    (["log", "export", "run.btl"], "--to"),
+    (["gains"], "ACTION"),
+])
+def test_a_bad_flag_is_refused_in_one_line(argv, needle, capsys):
+    assert main(argv) == 2
+    _one_line_error(capsys, "error:", needle)
+
+
+@pytest.mark.parametrize("argv", [
+    ["model", "--config", "missing.yaml"],
+    ["gains", "build", "--config", "missing.yaml"],
+    ["gains", "check", "missing.yaml"],
+    ["gains", "show", "missing.yaml"],
+    ["experiment", "--config", "missing.yaml"],
+    ["run", "--config", "missing.yaml"],
+    ["log", "export", "missing.btl", "--to", "csv"],
+    ["log", "plot", "missing.btl", "figs"],
+    ["bus-budget", "--dbc", "missing.dbc"],
+])
+def test_a_missing_input_file_is_refused_in_one_line(argv, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    command = argv[:2] if argv[0] in ("gains", "log") else argv[:1]
+    _one_line_error(capsys, f"beamctl {' '.join(command)}: error:", "missing.")
+    assert list(tmp_path.iterdir()) == [], "nothing written"
+
+
+# -- interruption ----------------------------------------------------------------------------------
+
+def test_ctrl_c_anywhere_in_a_command_exits_130_in_one_line(monkeypatch, capsys):
+    def interrupted(*_args, **_kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(model_cmd, "build_model", interrupted)
+    assert main(["model"]) == 130
+    assert capsys.readouterr().err == "beamctl model: interrupted (SIGINT)\n"
+
+
+def test_ctrl_c_during_gains_build_exits_130_and_leaves_no_table(tmp_path):
+    out = tmp_path / "gains" / "table.yaml"
+    # 401 grid points: long enough that SIGINT lands while it computes, on any machine
+    process = beamctl("gains", "build", "--grid", "0:4000:10", "--out", str(out), cwd=tmp_path)
+    status, err = interrupt_when(process, b"gains build:")
+    assert status == 130, err
+    assert err.splitlines()[-1] == "beamctl gains build: interrupted (SIGINT)", err
+    assert "Traceback" not in err
+    assert not out.exists() and not (tmp_path / "gains").exists(), "no table, no temporary file"
+
+
+def test_a_reader_that_stops_early_ends_the_command_quietly(tmp_path):
+    """``beamctl gains check | head``: exit 141 (the shell's status for SIGPIPE), no traceback."""
+    process = beamctl("gains", "check", cwd=tmp_path)
+    # a one-page pipe: the check's ~8 kB table cannot all be written before this reader leaves
+    fcntl.fcntl(process.stdout.fileno(), fcntl.F_SETPIPE_SZ, 4096)
+    try:
+        assert process.stdout.read(16).startswith(b"  load N")
+    finally:
+        process.stdout.close()
+    err = process.communicate(timeout=300)[1].decode()
+    assert process.returncode == 141, err
+    assert "Traceback" not in err and "BrokenPipeError" not in err and "Exception ignored" not in err, err
