@@ -40,14 +40,47 @@ def test_default_table_is_stable_at_every_point_and_midpoint_beyond_the_critical
     assert not unstable, f"closed loop unstable at (load N, spectral radius): {unstable}"
 
 
-def test_regenerating_the_default_table_gives_the_same_numbers(paper_model, default_table):
+STALE = ("gains/default.yaml is stale: rebuild it with `beamctl gains build --out gains/default.yaml` "
+         "and check it with `beamctl gains check gains/default.yaml`")
+
+
+def test_regenerating_the_default_table_gives_the_same_gains(paper_model, default_table):
+    """The gains to a relative 1e-5. Beyond the critical load the Riccati problem is ill
+    conditioned and LAPACK's result depends on the OpenBLAS kernel the CPU selects: its errors
+    are relative to the whole solution (up to 2e-10 of the largest gain), so the smallest
+    gains carry them magnified. The mode-2 displacement gain, 88.6 against 1.6e7 for the
+    integrals at 4000 N, differs by up to 1.4e-5 of itself between the Haswell and SkylakeX
+    kernels. Below 1e-9 of the largest gain (0.016 N per modal unit: against a mode-2
+    displacement of micrometres, 1e-6 modal units, 1e-8 N) a difference is not physical."""
     fresh = build_table(paper_model, check=False)
-    np.testing.assert_allclose(fresh.gains, default_table.gains, rtol=1e-9,
-                               atol=1e-12 * np.abs(default_table.gains).max(),
-                               err_msg="gains/default.yaml is stale: run `beamctl gains build "
-                                       "--out gains/default.yaml`")
-    np.testing.assert_allclose(fresh.c0_phi_inv, default_table.c0_phi_inv, rtol=1e-12)
-    assert fresh.design == default_table.design and fresh.schedule == default_table.schedule
+    assert fresh.design == default_table.design and fresh.schedule == default_table.schedule, STALE
+    np.testing.assert_array_equal(fresh.loads_n, default_table.loads_n, err_msg=STALE)
+    floor = 1e-9 * np.abs(default_table.gains).max()
+    np.testing.assert_allclose(
+        fresh.gains, default_table.gains, rtol=1e-5, atol=floor,
+        err_msg=f"the rebuilt gains differ from the shipped ones by more than 1e-5 relative (LAPACK "
+                f"kernels differ by up to 1.4e-5 on the smallest gains beyond the critical load, "
+                f"{floor:.2g} absolute): {STALE}")
+    # (C0 Phi)^-1 is well conditioned (cond 3.2): the kernels agree to 5e-10
+    np.testing.assert_allclose(fresh.c0_phi_inv, default_table.c0_phi_inv, rtol=1e-8, err_msg=STALE)
+
+
+def test_regenerating_the_default_table_gives_the_same_closed_loop(paper_model, default_table):
+    """What matters of the gains is the loop they close: the rebuilt table's spectral radius
+    at every check point equals the stored check's within 1 % of the table's stability margin
+    (1 - 0.999942 = 5.8e-5); the kernels agree to 1e-13."""
+    fresh = build_table(paper_model)
+    stored = default_table.checks
+    assert [c.load_n for c in fresh.checks] == [c.load_n for c in stored], STALE
+    margin = 1.0 - max(c.spectral_radius for c in stored)
+    assert margin > 0, f"the stored check says the shipped table is unstable: {STALE}"
+    diff = np.array([f.spectral_radius - s.spectral_radius
+                     for f, s in zip(fresh.checks, stored, strict=True)])
+    worst = int(np.argmax(np.abs(diff)))
+    assert np.abs(diff[worst]) <= 0.01 * margin, (
+        f"at {stored[worst].load_n:g} N the rebuilt closed loop has spectral radius "
+        f"{fresh.checks[worst].spectral_radius:.9f}, the stored check {stored[worst].spectral_radius:.9f}: "
+        f"a difference of {diff[worst]:.2g} against a stability margin of {margin:.2g}. {STALE}")
 
 
 def test_a_written_table_reads_back_bit_for_bit(tmp_path, small_table, paper_params):
