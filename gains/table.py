@@ -164,7 +164,11 @@ def require_checked(table: GainTable, source: str, advice: str) -> None:
 
 def write_table(table: GainTable, path: str | Path) -> Path:
     """Write ``table`` as YAML. A table with an unstable check point is refused unless it
-    was built with ``forced=True`` (the file then says so)."""
+    was built with ``forced=True`` (the file then says so), and a table read from a changed
+    file is refused: writing it would give the change a matching hash."""
+    if not table.intact:
+        raise GainTableError(CONTENT_HASH, "changed", f"a table as built, not one read from a file "
+                             f"changed after it was built; {rebuild_advice(path)}")
     if table.checked and not table.all_stable and not table.forced:
         unstable = [c.load_n for c in table.checks if not c.stable]
         raise GainTableError("check.all_stable", False,

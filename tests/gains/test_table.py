@@ -218,7 +218,10 @@ def test_the_content_hash_covers_every_field(tmp_path, small_table, paper_params
     message = str(err.value)
     assert err.value.key == "sha256", message
     assert "changed after it was built" in message and f"beamctl gains check {path}" in message, message
-    assert not load_table(path, verify=False).intact, "read for inspection, the change is reported"
+    changed = load_table(path, verify=False)
+    assert not changed.intact, "read for inspection, the change is reported"
+    with pytest.raises(GainTableError, match="changed after it was built"):
+        write_table(changed, tmp_path / "laundered.yaml")
 
 
 def test_a_table_built_without_its_check_is_refused_to_run(tmp_path, paper_model):
