@@ -3,15 +3,23 @@ the real-time service.
 
 The file holds the load grid, K per grid point, (C0 Phi)^-1, the sample rate and velocity
 filter the gains were designed for, Q and R, the schedule settings, the model parameters
-with their SHA-256, the closed-loop check, the tool version and the creation time. Loading
-checks every field; anything wrong is refused with a GainTableError naming the field.
-Numbers are written in Python's shortest round-trip form, so a table reads back bit for bit.
+with their SHA-256, the closed-loop check, the tool version and the creation time, and a
+SHA-256 over all of it. Loading checks every field; anything wrong is refused with a
+GainTableError naming the field. Numbers are written in Python's shortest round-trip form,
+so a table reads back bit for bit and its content hash is reproducible.
+
+A table the controller may run has a content hash that matches, a closed-loop check, and
+no unstable point in it (nor ``--force``): ``load_table`` refuses anything else unless
+asked only to read it (``verify=False``, for ``beamctl gains check`` and ``show``).
 """
 
 from __future__ import annotations
 
 import datetime as _dt
+import hashlib
+import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,12 +32,34 @@ from beamctl.gains.lqr import N_INPUTS, N_STATES, Weights
 from beamctl.models.params import ModelParameters, parameters_from_dict
 from beamctl.models.schema import ConfigError, read_yaml
 
-FORMAT = "beamctl-gain-table/1"
+FORMAT = "beamctl-gain-table/2"
+# earlier formats, refused with the reason and what to run
+OLD_FORMATS = {"beamctl-gain-table/1": "carries no SHA-256 of its content"}
+CONTENT_HASH = "sha256"
 SCHEDULE_MODES = ("interpolate", "paper")
 
 
 class GainTableError(ConfigError):
     """A gain table file was refused; ``key`` names the field."""
+
+
+def content_sha256(data: Mapping[str, Any]) -> str:
+    """SHA-256 of a table file's content: the canonical JSON (sorted keys, no spaces, numbers
+    in shortest round-trip form) of every field but the ``sha256`` field itself."""
+    content = {k: v for k, v in data.items() if k != CONTENT_HASH}
+    canonical = json.dumps(content, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(canonical.encode()).hexdigest()
+
+
+def rebuild_advice(path: str | Path) -> str:
+    """What to run to replace a table file that cannot be used."""
+    return (f"rebuild it with `beamctl gains build --out {path}` (with `--config` for a model other "
+            f"than the paper's) and check it with `beamctl gains check {path}`")
+
+
+def changed_file_message(path: str | Path) -> str:
+    """Why a table whose content does not match its SHA-256 is refused, and what to run."""
+    return f"the file was changed after it was built; {rebuild_advice(path)}"
 
 
 @dataclass(frozen=True)
@@ -65,16 +95,29 @@ class GainTable:
     tool_version: str = ""
     created: str = field(default_factory=lambda: _dt.datetime.now(_dt.timezone.utc).isoformat(
         timespec="seconds"))
+    # read from a file whose content matches its SHA-256 (a table built in memory: True)
+    intact: bool = True
 
     @property
     def model_sha256(self) -> str:
         return self.model_parameters.digest()
 
     @property
+    def checked(self) -> bool:
+        """The table carries the result of its closed-loop check."""
+        return bool(self.checks)
+
+    @property
     def all_stable(self) -> bool:
-        return all(c.stable for c in self.checks)
+        """Checked, and stable at every check point."""
+        return self.checked and all(c.stable for c in self.checks)
 
     def to_dict(self) -> dict[str, Any]:
+        """The file's content, with the SHA-256 of everything else under ``sha256``."""
+        content = self._content()
+        return {"format": content["format"], CONTENT_HASH: content_sha256(content), **content}
+
+    def _content(self) -> dict[str, Any]:
         w = self.design.weights
         return {
             "format": FORMAT,
@@ -101,10 +144,32 @@ class GainTable:
         }
 
 
+def require_checked(table: GainTable, source: str, advice: str) -> None:
+    """Refuse to run a table whose closed-loop check is missing or failed: no check points
+    (built without the check), an unstable point, or written with ``--force``. ``advice``
+    says what to run instead."""
+    if not table.checked:
+        raise GainTableError("check.points", "none",
+                             f"the result of the closed-loop check (this table was built without "
+                             f"it); {advice}", source)
+    unstable = [c.load_n for c in table.checks if not c.stable]
+    if unstable or table.forced:
+        more = " ..." if len(unstable) > 8 else ""
+        found = f"unstable at {unstable[:8]}{more} N" if unstable else "stable"
+        raise GainTableError("check.forced" if table.forced else "check.points",
+                             found + (", written with --force" if table.forced else ""),
+                             f"a closed loop stable at every check point, built without --force; "
+                             f"{advice}", source)
+
+
 def write_table(table: GainTable, path: str | Path) -> Path:
     """Write ``table`` as YAML. A table with an unstable check point is refused unless it
-    was built with ``forced=True`` (the file then says so)."""
-    if not table.all_stable and not table.forced:
+    was built with ``forced=True`` (the file then says so), and a table read from a changed
+    file is refused: writing it would give the change a matching hash."""
+    if not table.intact:
+        raise GainTableError(CONTENT_HASH, "changed", f"a table as built, not one read from a file "
+                             f"changed after it was built; {rebuild_advice(path)}")
+    if table.checked and not table.all_stable and not table.forced:
         unstable = [c.load_n for c in table.checks if not c.stable]
         raise GainTableError("check.all_stable", False,
                              f"a stable closed loop at every check point; unstable at {unstable} N "
@@ -112,8 +177,8 @@ def write_table(table: GainTable, path: str | Path) -> Path:
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     header = ("# beamctl gain table: integral LQR gains K(Fx) [4 x 12] per axial load.\n"
-              "# Written by `beamctl gains build`; checked on load (do not edit by hand:\n"
-              "# the model hash and the closed-loop check would no longer describe it).\n")
+              "# Written by `beamctl gains build`; checked on load. Do not edit by hand: the\n"
+              "# SHA-256 of the content would no longer match and `beamctl run` refuses it.\n")
     p.write_text(header + yaml.safe_dump(table.to_dict(), sort_keys=False, width=120))
     return p
 
@@ -163,17 +228,27 @@ def _number(data: dict, key: str, source: str, *, positive: bool = True) -> floa
     return float(raw)
 
 
-def load_table(path: str | Path, model: ModelParameters | None = None) -> GainTable:
+def load_table(path: str | Path, model: ModelParameters | None = None, *,
+               verify: bool = True) -> GainTable:
     """Read and validate a gain table. With ``model``, the table must have been designed for
-    exactly these parameters (SHA-256 of the parameters)."""
+    exactly these parameters (SHA-256 of the parameters).
+
+    With ``verify`` (the default: a table to run) the file's content must match its SHA-256
+    and carry a passed closed-loop check (``require_checked``). Without it the table is read
+    as it is, for inspection, and ``intact`` says whether its content matches its hash.
+    """
     source = str(path)
     try:
         data = read_yaml(path)
     except ConfigError as exc:
         raise GainTableError("", str(path), exc.expected, "") from None
-    if data.get("format") != FORMAT:
-        raise GainTableError("format", data.get("format"), f"{FORMAT!r} (not a beamctl gain table)",
-                             source)
+    version = data.get("format")
+    if isinstance(version, str) and version in OLD_FORMATS:
+        raise GainTableError("format", version,
+                             f"{FORMAT!r}: this table was written by an earlier beamctl and "
+                             f"{OLD_FORMATS[version]}; {rebuild_advice(path)}", source)
+    if version != FORMAT:
+        raise GainTableError("format", version, f"{FORMAT!r} (not a beamctl gain table)", source)
 
     loads = _array(data, "loads_N", (None,), source)
     if loads.size == 0:
@@ -240,15 +315,22 @@ def load_table(path: str | Path, model: ModelParameters | None = None) -> GainTa
     forced = _field(data, "check.forced", source)
     if not isinstance(forced, bool):
         raise GainTableError("check.forced", forced, "true or false", source)
-    if not forced and not all(c.stable for c in checks):
-        raise GainTableError("check.forced", False,
-                             "true for a table with unstable check points (it was edited by hand)",
-                             source)
 
-    return GainTable(
+    stored = data.get(CONTENT_HASH)
+    content = content_sha256(data)
+    table = GainTable(
         loads_n=loads, gains=gains, c0_phi_inv=c0_phi_inv,
         design=DesignSettings(sample_rate_hz=sample_rate, velocity_cutoff_hz=cutoff,
                               weights=Weights(q=tuple(q.tolist()), r=tuple(r.tolist()))),
         schedule=ScheduleSettings(mode=mode, load_filter_hz=load_filter, hysteresis_n=hysteresis),
         model_parameters=params, checks=tuple(checks), forced=forced,
-        tool_version=str(data.get("tool_version", "")), created=str(data.get("created", "")))
+        tool_version=str(data.get("tool_version", "")), created=str(data.get("created", "")),
+        intact=stored == content)
+    if verify:
+        if not table.intact:
+            found = f"{stored[:16]}..." if isinstance(stored, str) else stored
+            raise GainTableError(CONTENT_HASH, found,
+                                 f"the SHA-256 of the file's content ({content[:16]}...): "
+                                 f"{changed_file_message(path)}", source)
+        require_checked(table, source, rebuild_advice(path))
+    return table

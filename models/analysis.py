@@ -8,7 +8,16 @@ from collections.abc import Sequence
 import numpy as np
 import scipy.linalg as sla
 
-from beamctl.models.fe import DOF_PER_NODE, PLANE_DOFS, FEModel, Plane, dof, plane_eigen, plane_indices
+from beamctl.models.fe import (
+    DOF_PER_NODE,
+    PLANE_DOFS,
+    FEModel,
+    Plane,
+    buckling_eigen,
+    dof,
+    plane_eigen,
+    plane_indices,
+)
 
 # (states, inputs, outputs) of the y and z bending planes in the 4-input, 4-output systems
 PLANE_IO = {"y": (0, 2), "z": (1, 3)}
@@ -63,20 +72,13 @@ def critical_load(model: FEModel, plane: Plane = "y") -> float:
 def buckling_mode(model: FEModel, plane: Plane = "y") -> tuple[float, np.ndarray]:
     """Critical load and first buckling mode of one plane.
 
-    Solved as Kg phi = mu Ke phi (Ke is positive definite thanks to the supports) with
-    Fx,cr = 1/mu_max. The mode is scaled to a largest lateral displacement on the beam of
-    +1 (its sign chosen so that the beam bows towards the positive axis).
+    The mode (``fe.buckling_eigen``) is scaled to a largest lateral displacement on the beam
+    of +1 (its sign chosen so that the beam bows towards the positive axis).
     """
-    n = model.n_dof
-    idx = plane_indices(model.n_nodes, plane)
-    k = model.elastic_stiffness[np.ix_(idx, idx)]
-    g = model.geometric_stiffness[np.ix_(idx, idx)]
-    mu, vec = sla.eigh(g, k, subset_by_index=[len(idx) - 1, len(idx) - 1])
-    mode = np.zeros(n)
-    mode[idx] = vec[:, 0]
+    load, mode = buckling_eigen(model.elastic_stiffness, model.geometric_stiffness, plane)
     lateral = mode[[dof(k_, PLANE_DOFS[plane][0]) for k_ in model.beam_nodes]]
     mode /= lateral[np.argmax(np.abs(lateral))]
-    return float(1.0 / mu[0]), mode
+    return load, mode
 
 
 def lateral_displacements(model: FEModel, r: np.ndarray) -> np.ndarray:

@@ -130,6 +130,21 @@ def plane_eigen(stiffness: np.ndarray, mass: np.ndarray, plane: Plane, count: in
     return lam, full
 
 
+def buckling_eigen(elastic: np.ndarray, geometric: np.ndarray, plane: Plane = "y"):
+    """Lowest buckling load det(Ke - Fx Kg) = 0 of one plane (eq. 12) and its mode.
+
+    Solved as Kg phi = mu Ke phi (Ke is positive definite thanks to the supports) with
+    Fx,cr = 1/mu_max. Returns (Fx,cr in N, the mode as a full DOF vector, unscaled).
+    """
+    n = elastic.shape[0]
+    idx = plane_indices(n // DOF_PER_NODE, plane)
+    mu, vec = sla.eigh(geometric[np.ix_(idx, idx)], elastic[np.ix_(idx, idx)],
+                       subset_by_index=[len(idx) - 1, len(idx) - 1])
+    mode = np.zeros(n)
+    mode[idx] = vec[:, 0]
+    return float(1.0 / mu[0]), mode
+
+
 @dataclass(frozen=True)
 class FEModel:
     """Matrices of eq. (2) and (5) for one set of parameters.
@@ -237,9 +252,11 @@ def build_model(params: ModelParameters) -> FEModel:
     d = params.damping
     alpha, beta = rayleigh_coefficients(mass, elastic, geometric, d.ratios, d.identification_load)
     if not np.isfinite(alpha):
+        critical, _ = buckling_eigen(elastic, geometric)
         raise ConfigError("damping.identification_load", d.identification_load,
-                          "a load below the critical buckling load of the beam-column "
-                          "(the first mode has no frequency there)")
+                          f"a load below this model's critical buckling load Fx,cr = "
+                          f"{critical:.1f} N (the first mode has no frequency beyond it): the "
+                          f"load at which damping.ratios were identified on this beam")
     if alpha < 0 or beta < 0:
         raise ConfigError(
             "damping.ratios", list(d.ratios),

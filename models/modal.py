@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from beamctl.models.analysis import PLANE_IO, frequency_response
+from beamctl.models.analysis import PLANE_IO, critical_load, frequency_response
 from beamctl.models.fe import PLANE_DOFS, FEModel, dof, plane_eigen
 from beamctl.models.schema import ConfigError
 
@@ -88,19 +88,24 @@ class ModalModel:
 def reduce(model: FEModel, reference_load: float | None = None) -> ModalModel:
     """Modal truncation of ``model`` to two bending modes per plane (eq. 14-19).
 
-    The mode shapes are those of the beam loaded with ``reference_load`` (default: the
-    parameters' ``modal.reference_load``). A gauge placement for which C0 Phi is
+    The mode shapes are those of the beam loaded with ``reference_load`` in N (default: the
+    parameters' ``modal.reference_load_fraction`` of the model's own critical load, so that
+    the reference load lies below it for every model). A gauge placement for which C0 Phi is
     ill-conditioned (condition number above ``sensors.max_condition_number``) is refused.
     """
-    load = model.params.modal.reference_load if reference_load is None else reference_load
+    if reference_load is None:
+        fraction = model.params.modal.reference_load_fraction
+        key, value, load = "modal.reference_load_fraction", fraction, fraction * critical_load(model)
+    else:
+        key, value, load = "reference_load", reference_load, reference_load
     k_ref = model.load_stiffness(load)
     per_plane = {}
     for plane in ("y", "z"):
         lam, vec = plane_eigen(k_ref, model.mass, plane, MODES_PER_PLANE)
         if lam[0] <= 0:
-            raise ConfigError("modal.reference_load", load,
-                              "a load below the critical buckling load (the first mode has "
-                              "buckled there and has no mode shape to reduce onto)")
+            raise ConfigError(key, value,
+                              f"a load below the critical buckling load (at {load:.1f} N the "
+                              f"first mode has buckled and has no mode shape to reduce onto)")
         per_plane[plane] = orient_modes(model, vec, plane)
     phi = np.column_stack([per_plane[plane][:, i] for plane, i in MODE_ORDER])
 

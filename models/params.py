@@ -58,7 +58,7 @@ _SCHEMA = {
         "identification_load": nonnegative("N"),
     },
     "fe": {"nodes": integer(low=5, high=401)},
-    "modal": {"reference_load": nonnegative("N")},
+    "modal": {"reference_load_fraction": number(low=0.0, high=1.0, high_open=True)},
 }
 
 
@@ -105,7 +105,7 @@ class FE:
 
 @dataclass(frozen=True)
 class Modal:
-    reference_load: float
+    reference_load_fraction: float   # of the model's own critical load, 0 <= f < 1
 
 
 @dataclass(frozen=True)
@@ -139,6 +139,12 @@ def default_dict() -> dict[str, Any]:
 
 def parameters_from_dict(overrides: dict[str, Any] | None = None, source: str = "") -> ModelParameters:
     """Validate ``overrides`` applied over the paper defaults and return the parameters."""
+    modal = (overrides or {}).get("modal")
+    if isinstance(modal, dict) and "reference_load" in modal:
+        raise ConfigError("modal.reference_load", modal["reference_load"],
+                          "modal.reference_load_fraction in its place: the reduced model's "
+                          "reference load is now a fraction of the model's own critical load, "
+                          "0 <= f < 1 (the paper's beam: 0.78, i.e. 2491 N of 3194 N)", source)
     data = merge(default_dict(), overrides or {})
     v = validate(data, _SCHEMA, source)
     beam_length = v["beam"]["length"]

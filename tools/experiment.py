@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from beamctl.gains.build import build_table
-from beamctl.gains.table import GainTable
+from beamctl.gains.table import GainTable, require_checked
 from beamctl.hal.sim import SimBackend
 from beamctl.models import build_model, critical_load, reduce
 from beamctl.models.analysis import lateral_displacements
@@ -131,8 +131,13 @@ class Deflection:
 
 
 def paper_table(cfg: ServiceConfig) -> GainTable:
-    """The experiment's gains: 0..3500 N every 500 N, switched stepwise (built for this run)."""
-    return build_table(build_model(cfg.model), mode="paper", check=False)
+    """The experiment's gains: 0..3500 N every 500 N, switched stepwise (built for this run),
+    under the rule of every table that runs: refused unless its closed-loop check passed."""
+    table = build_table(build_model(cfg.model), mode="paper")
+    require_checked(table, "the paper's switching table for this model",
+                    "leave its run out with --no-paper (experiment.paper_mode: false); "
+                    "`beamctl gains build --mode paper --config F --out paper.yaml` shows the check")
+    return table
 
 
 def run_mode(mode: str, cfg: ServiceConfig, settings: dict, telemetry_dir: Path | None = None,

@@ -5,12 +5,13 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import sys
 
 import numpy as np
 
 from beamctl.gains.build import build_table, closed_loop_checks
 from beamctl.gains.defaults import default_table_path
-from beamctl.gains.table import GainTable, load_table, write_table
+from beamctl.gains.table import GainTable, changed_file_message, load_table, write_table
 from beamctl.models import build_model, load_parameters
 from beamctl.models.schema import ConfigError
 from beamctl.tools.outputs import check_dir, check_file, replacing
@@ -59,7 +60,14 @@ def add_parser(sub) -> None:
 
 
 def _load(file: str | None) -> GainTable:
-    return load_table(file or default_table_path())
+    """The table as it is (changed, unchecked or forced), for inspection; a changed one is
+    reported on stderr."""
+    path = file or default_table_path()
+    table = load_table(path, verify=False)
+    if not table.intact:
+        print(f"beamctl gains: warning: {path}: the content does not match its SHA-256: "
+              f"{changed_file_message(path)}; `beamctl run` refuses it", file=sys.stderr)
+    return table
 
 
 def run_build(args: argparse.Namespace) -> int:
@@ -101,14 +109,17 @@ def run_check(args: argparse.Namespace) -> int:
         print(json.dumps({
             "points": [{"load_N": c.load_n, "spectral_radius": c.spectral_radius, "stable": c.stable,
                         "min_damping": c.min_damping} for c in checks],
-            "all_stable": all_stable}, indent=1))
+            "all_stable": all_stable, "sha256_matches": table.intact}, indent=1))
     else:
         print(f"{'load N':>8} {'spectral radius':>16} {'min damping':>12}  stable")
         for c in checks:
             print(f"{c.load_n:8.1f} {c.spectral_radius:16.6f} {c.min_damping:12.5f}  "
                   f"{'yes' if c.stable else 'NO'}")
         print(f"all stable: {'yes' if all_stable else 'NO'}")
-    return 0 if all_stable else 1
+        if not table.intact:
+            print("content SHA-256: DOES NOT MATCH (the file was changed after it was built; "
+                  "`beamctl run` refuses it)")
+    return 0 if all_stable and table.intact else 1
 
 
 def run_show(args: argparse.Namespace) -> int:
@@ -122,8 +133,10 @@ def run_show(args: argparse.Namespace) -> int:
           f"schedule {s.mode}, load filter {s.load_filter_hz:g} Hz, hysteresis {s.hysteresis_n:g} N")
     print(f"Q diagonal {', '.join(f'{x:.3g}' for x in d.weights.q)}")
     print(f"R diagonal {', '.join(f'{x:.3g}' for x in d.weights.r)}")
-    print(f"check: {'all stable' if table.all_stable else 'UNSTABLE points'}"
-          f"{' (forced)' if table.forced else ''}")
+    check = "all stable" if table.all_stable else "UNSTABLE points" if table.checked else "none"
+    recorded = " (as recorded before the change)" if not table.intact else ""
+    print(f"check{recorded}: {check}{' (forced)' if table.forced else ''}")
+    print(f"content sha256: {'matches' if table.intact else 'DOES NOT MATCH (changed after it was built)'}")
     print()
     print("gains of support A, y direction (row Fay,A), by state:")
     names = ["q1y", "q2y", "dq1y", "dq2y", "iq1y", "iq2y"]

@@ -30,7 +30,9 @@ def summary(model: FEModel, reduced: ModalModel) -> dict:
     """The numbers ``beamctl model`` reports, as a JSON-ready dict."""
     full = {str(f): eigenfrequencies(model, f, 3).tolist() for f in TABLE_LOADS_N}
     red = {str(f): reduced.eigenfrequencies(f).tolist() for f in TABLE_LOADS_N}
-    error = {k: [r / f - 1.0 for r, f in zip(red[k], full[k][:2], strict=True)] for k in full}
+    # relative error of the reduced model; none beyond the critical load (buckled: 0 Hz)
+    error = {k: [r / f - 1.0 if f > 0 else None for r, f in zip(red[k], full[k][:2], strict=True)]
+             for k in full}
     return {
         "critical_load_N": critical_load(model),
         "eigenfrequencies_Hz": full,
@@ -39,6 +41,7 @@ def summary(model: FEModel, reduced: ModalModel) -> dict:
                      "identification_load_N": model.params.damping.identification_load},
         "reduced_model": {
             "reference_load_N": reduced.reference_load,
+            "reference_load_fraction": model.params.modal.reference_load_fraction,
             "critical_load_N": reduced.critical_load(),
             "condition_number_C0_Phi": reduced.condition_number,
             "eigenfrequencies_Hz": red,
@@ -54,15 +57,17 @@ def print_table(s: dict, source: str) -> None:
     r = s["rayleigh"]
     print(f"Rayleigh damping: alpha = {r['alpha_per_s']:.4g} 1/s, beta = {r['beta_s']:.4g} s "
           f"(fitted at {r['identification_load_N']:g} N)")
-    print(f"reduced model: modes at {red['reference_load_N']:g} N, cond(C0 Phi) = "
+    print(f"reduced model: modes at {red['reference_load_N']:.1f} N "
+          f"({red['reference_load_fraction']:g} Fx,cr), cond(C0 Phi) = "
           f"{red['condition_number_C0_Phi']:.3g}, critical load {red['critical_load_N']:.1f} N")
     print()
     print(f"{'load N':>7} | {'f1 Hz':>8} {'f2 Hz':>8} {'f3 Hz':>8} | {'reduced f1':>10} {'f2':>8} "
           f"| {'err f1 %':>8} {'err f2 %':>8}")
     for load, f in s["eigenfrequencies_Hz"].items():
         fr, err = red["eigenfrequencies_Hz"][load], red["relative_error"][load]
+        errors = " ".join(f"{'buckled':>8}" if e is None else f"{100 * e:8.3f}" for e in err)
         print(f"{load:>7} | {f[0]:8.2f} {f[1]:8.2f} {f[2]:8.2f} | {fr[0]:10.2f} {fr[1]:8.2f} "
-              f"| {100 * err[0]:8.3f} {100 * err[1]:8.3f}")
+              f"| {errors}")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -61,7 +61,7 @@ def eigenfrequencies_vs_load(model: FEModel, reduced: ModalModel, path: Path) ->
         ax.plot(loads, full[:, i], color="k", label="full FE model" if i == 0 else None)
     for i in range(2):
         ax.plot(loads, red[:, i], "--", color="tab:red",
-                label=f"reduced model (modes at {reduced.reference_load:g} N)" if i == 0 else None)
+                label=f"reduced model (modes at {reduced.reference_load:.0f} N)" if i == 0 else None)
     ax.axvline(fcr, color="0.5", lw=0.8)
     ax.text(fcr, ax.get_ylim()[1] * 0.95, f" Fx,cr = {fcr:.0f} N", ha="right", va="top")
     return _finish(fig, ax, path, xlabel="axial load Fx in N", ylabel="eigenfrequency f in Hz",

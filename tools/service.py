@@ -89,7 +89,8 @@ def load_service_config(path: str | Path | None) -> ServiceConfig:
 
 
 def load_gain_table(cfg: ServiceConfig) -> GainTable:
-    """The configured table, refused unless designed for exactly the configured model."""
+    """The configured table, refused unless designed for exactly the configured model, its
+    content matches its SHA-256, and its closed-loop check is there and passed."""
     return load_table(cfg.table_path, cfg.model)
 
 

@@ -19,6 +19,7 @@ def test_defaults_are_table_1_of_the_paper(paper_params):
     assert p.damping.ratios == (0.015, 0.0045)
     assert p.damping.identification_load == 2000.0
     assert p.fe.nodes == 35
+    assert p.modal.reference_load_fraction == 0.78
 
 
 def test_a_partial_file_overrides_only_its_keys(tmp_path, paper_params):
@@ -94,10 +95,45 @@ def test_damping_identified_on_the_unloaded_beam_is_refused_as_negative_damping(
     assert "negative damping" in str(err.value) and "beta = -" in str(err.value)
 
 
-def test_identification_load_beyond_buckling_is_refused():
+def test_identification_load_beyond_buckling_is_refused_naming_the_critical_load():
     params = parameters_from_dict({"damping": {"identification_load": 3300.0}})
-    with pytest.raises(ConfigError, match="below the critical buckling load"):
+    with pytest.raises(ConfigError, match=r"below this model's critical buckling load Fx,cr = 3193\.5 N"):
         build_model(params)
+
+
+def test_a_model_buckling_below_the_identification_load_is_refused_and_fits_below_it():
+    """The damping ratios hold at the load they were measured at: a beam that buckles below
+    2000 N cannot have been identified there, and is fitted at a load it carries."""
+    thin = {"beam": {"radius": 3.5e-3}}
+    with pytest.raises(ConfigError) as err:
+        build_model(parameters_from_dict(thin))
+    assert err.value.key == "damping.identification_load" and "Fx,cr = 1999.2 N" in str(err.value)
+    model = build_model(parameters_from_dict({**thin, "damping": {"identification_load": 1200.0}}))
+    assert model.rayleigh_alpha > 0 and model.rayleigh_beta > 0
+
+
+def test_the_soft_supports_model_fits_its_damping_at_2000_N():
+    """Buckling at 2381 N, the model with soft supports is still identified at 2000 N."""
+    params = parameters_from_dict({"supports": {"lateral_stiffness": 2.0e6, "actuator_stiffness": 5.0e6}})
+    model = build_model(params)
+    assert model.rayleigh_alpha > 0 and model.rayleigh_beta > 0
+
+
+def test_the_old_absolute_reference_load_is_refused_naming_the_new_key(tmp_path):
+    f = tmp_path / "old.yaml"
+    f.write_text("modal: {reference_load: 2500.0}\n")
+    with pytest.raises(ConfigError) as err:
+        load_parameters(f)
+    message = str(err.value)
+    assert err.value.key == "modal.reference_load", message
+    assert "modal.reference_load_fraction" in message and "old.yaml" in message, message
+
+
+@pytest.mark.parametrize("fraction", [1.0, 1.2, -0.1])
+def test_a_reference_load_fraction_outside_0_to_1_is_refused(fraction):
+    with pytest.raises(ConfigError) as err:
+        parameters_from_dict({"modal": {"reference_load_fraction": fraction}})
+    assert err.value.key == "modal.reference_load_fraction" and "< 1" in str(err.value)
 
 
 def test_gauges_that_cannot_tell_the_modes_apart_are_refused_with_the_condition_number():

@@ -55,3 +55,15 @@ def test_console_script_is_installed():
     result = subprocess.run([str(script), "model", "--json"], capture_output=True, text=True, check=False)
     assert result.returncode == 0, result.stderr
     assert "critical_load_N" in json.loads(result.stdout)
+
+
+def test_a_model_buckling_below_3000_N_is_reported_with_its_buckled_rows(tmp_path, capsys):
+    f = tmp_path / "soft.yaml"
+    f.write_text("supports: {lateral_stiffness: 2.0e6, actuator_stiffness: 5.0e6}\n")
+    assert main(["model", "--config", str(f)]) == 0
+    out = capsys.readouterr().out
+    assert "Fx,cr = 2380.8 N" in out and "(0.78 Fx,cr)" in out, out
+    assert out.count("buckled") == 2, "f1 has buckled at 2500 N and 3000 N"
+    assert main(["model", "--config", str(f), "--json"]) == 0
+    reduced = json.loads(capsys.readouterr().out)["reduced_model"]
+    assert reduced["relative_error"]["3000"][0] is None and reduced["reference_load_fraction"] == 0.78
