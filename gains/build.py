@@ -35,17 +35,34 @@ def check_points(loads: Sequence[float]) -> list[float]:
     return sorted(loads + mids)
 
 
+def check_plan(table: GainTable) -> list[tuple[float, float | None, np.ndarray]]:
+    """(load, grid load whose gain is used or None, gain) of every closed-loop check: each grid
+    point and midpoint with the gain the schedule settles on there and, in ``paper`` mode,
+    the ends of each gain's reach through the hysteresis band: gain i is still on at
+    L_i + h/2 as the load rises and down to L_(i-1) - h/2 as it falls."""
+    schedule = GainSchedule(table)
+    plan = [(load, None, schedule.gain_at(load)) for load in check_points(table.loads_n)]
+    if table.schedule.mode == "paper":
+        half = 0.5 * table.schedule.hysteresis_n
+        loads = [float(x) for x in table.loads_n]
+        for i, gain in enumerate(table.gains):
+            if half > 0 and i + 1 < len(loads):
+                plan.append((loads[i] + half, loads[i], gain))
+            if half > 0 and i > 0 and loads[i - 1] - half >= loads[0]:
+                plan.append((loads[i - 1] - half, loads[i], gain))
+    return sorted(plan, key=lambda p: p[0])
+
+
 def closed_loop_checks(model: FEModel, table: GainTable, progress: Progress | None = None,
                        done: int = 0, total: int | None = None) -> tuple[LoopCheck, ...]:
-    """The closed-loop check of ``table`` at every grid point and midpoint, with the gain the
-    schedule would use there."""
+    """The closed-loop check of ``table`` at every load of ``check_plan``."""
     filt = velocity_filter(table.design.velocity_cutoff_hz, table.design.sample_rate_hz)
-    schedule = GainSchedule(table)
-    points = check_points(table.loads_n)
-    total = total if total is not None else len(points)
+    plan = check_plan(table)
+    total = total if total is not None else len(plan)
     results = []
-    for i, load in enumerate(points):
-        results.append(check_load(model, load, schedule.gain_at(load), table.c0_phi_inv, filt))
+    for i, (load, gain_load, gain) in enumerate(plan):
+        result = check_load(model, load, gain, table.c0_phi_inv, filt)
+        results.append(replace(result, gain_load_n=gain_load))
         if progress:
             progress(done + i + 1, total, f"check {load:7.1f} N")
     return tuple(results)
@@ -64,15 +81,16 @@ def build_table(model: FEModel, loads_n: Sequence[float] | None = None, mode: st
         raise ConfigError("--grid", loads.tolist(), "at least two grid points to interpolate between")
     schedule = schedule or replace(DEFAULT_SCHEDULE, mode=mode)
     reduced = reduce(model)
-    total = len(loads) + (len(check_points(loads)) if check else 0)
-    gains = np.empty((len(loads), 4, 12))
+    gains = np.zeros((len(loads), 4, 12))
+    table = GainTable(loads_n=loads, gains=gains, c0_phi_inv=reduced.c0_phi_inv, design=design,
+                      schedule=schedule, model_parameters=model.params, tool_version=tool_version())
+    total = len(loads) + (len(check_plan(table)) if check else 0)
     for i, load in enumerate(loads):
         gains[i] = lqr_gain(reduced, load, design.weights)
         if progress:
             progress(i + 1, total, f"LQR {load:7.1f} N")
-    table = GainTable(loads_n=loads, gains=gains, c0_phi_inv=reduced.c0_phi_inv, design=design,
-                      schedule=schedule, model_parameters=model.params, forced=force,
-                      tool_version=tool_version())
     if check:
         table = replace(table, checks=closed_loop_checks(model, table, progress, len(loads), total))
+        # --force marks a table that is written in spite of an unstable point, nothing else
+        table = replace(table, forced=force and not table.all_stable)
     return table

@@ -62,11 +62,13 @@ def velocity_filter(cutoff_hz: float, sample_rate_hz: float) -> VelocityFilter:
 
 @dataclass(frozen=True)
 class LoopCheck:
-    """Stability of the discrete closed loop at one axial load."""
+    """Stability of the discrete closed loop at one axial load, with the gain the schedule
+    settles on there, or (``gain_load_n``) the gain of that grid load."""
 
     load_n: float
     spectral_radius: float
     min_damping: float
+    gain_load_n: float | None = None
 
     @property
     def stable(self) -> bool:

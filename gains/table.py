@@ -138,10 +138,17 @@ class GainTable:
             "check": {
                 "all_stable": self.all_stable,
                 "forced": self.forced,
-                "points": [{"load_N": c.load_n, "spectral_radius": c.spectral_radius,
-                            "min_damping": c.min_damping, "stable": c.stable} for c in self.checks],
+                "points": [_check_point(c) for c in self.checks],
             },
         }
+
+
+def _check_point(c: LoopCheck) -> dict[str, Any]:
+    point = {"load_N": c.load_n, "spectral_radius": c.spectral_radius, "min_damping": c.min_damping,
+             "stable": c.stable}
+    if c.gain_load_n is not None:       # the gain of that grid point (paper mode's band edges)
+        point["gain_load_N"] = c.gain_load_n
+    return point
 
 
 def require_checked(table: GainTable, source: str, advice: str) -> None:
@@ -305,11 +312,14 @@ def load_table(path: str | Path, model: ModelParameters | None = None, *,
         raise GainTableError("check.points", _short(points), "a list of check points", source)
     for i, p in enumerate(points):
         try:
+            gain_load = p.get("gain_load_N")
             checks.append(LoopCheck(load_n=float(p["load_N"]), spectral_radius=float(p["spectral_radius"]),
-                                    min_damping=float(p["min_damping"])))
-        except (TypeError, KeyError, ValueError):
+                                    min_damping=float(p["min_damping"]),
+                                    gain_load_n=None if gain_load is None else float(gain_load)))
+        except (TypeError, KeyError, ValueError, AttributeError):
             raise GainTableError(f"check.points[{i}]", _short(p),
-                                 "load_N, spectral_radius and min_damping numbers", source) from None
+                                 "load_N, spectral_radius and min_damping numbers (and gain_load_N "
+                                 "where the gain of a grid point was checked)", source) from None
         if not all(math.isfinite(x) for x in (checks[-1].load_n, checks[-1].spectral_radius)):
             raise GainTableError(f"check.points[{i}]", _short(p), "finite numbers", source)
     forced = _field(data, "check.forced", source)

@@ -16,6 +16,7 @@ from beamctl.hal.base import Sample
 from beamctl.rt.config import controller_config
 from beamctl.rt.controller import Controller
 from beamctl.tools.argtypes import steps
+from beamctl.tools.experiment import Interrupted
 
 
 def percentiles_us(seconds: np.ndarray) -> dict:
@@ -72,6 +73,8 @@ def timer_pacing(cycles: int = 5000) -> dict:
         result = ControlLoop(Controller(table, config), hal, max_cycles=cycles).run(acquire_rt=False)
     finally:
         hal.close()
+    if result.signal_received:
+        raise Interrupted(result.signal_received, "the timer pacing measurement")
     cycle = result.timing["cycle"]
     return {"period_us": 1e6 / table.design.sample_rate_hz, "p50": cycle["p50_us"],
             "p99": cycle["p99_us"], "max": cycle["max_us"], "overruns": result.timing["overruns"],
@@ -90,7 +93,6 @@ def can_latency(samples: int = 5000) -> dict:
     from beamctl.models.plant import Plant, plant_config
     from beamctl.rt.allocation import geometry
     from beamctl.rt.loop import ControlLoop
-    from beamctl.tools.experiment import Interrupted
 
     table = load_table(default_table_path())
     config = controller_config({"pacing": "sample"})
@@ -129,10 +131,11 @@ def sim_realtime_factor() -> dict:
     from pathlib import Path
 
     from beamctl.tools.experiment import experiment_config, run_mode
+    from beamctl.tools.service import load_gain_table
 
     cfg, settings = experiment_config()
     with tempfile.TemporaryDirectory() as tmp:
-        trace = run_mode("interpolate", cfg, settings, Path(tmp))
+        trace = run_mode("interpolate", cfg, settings, load_gain_table(cfg), Path(tmp))
     return {"factor": trace.plant_s / trace.wall_s, "plant_s": trace.plant_s, "wall_s": trace.wall_s}
 
 

@@ -7,8 +7,9 @@ Exit status:
 - 2: bad input (a flag, a configuration value, an unreadable input file, an output path that
   cannot be written), refused in one line on stderr before the work starts;
 - 128 + the signal's number when a signal stopped the command: 130 for Ctrl-C (SIGINT), 143
-  for SIGTERM during a simulated run. ``beamctl run`` is the exception: for the service
-  SIGINT and SIGTERM are the operator's normal stop, and it exits 0;
+  for SIGTERM. ``beamctl run`` and ``beamctl plant`` are the exceptions: for a service (the
+  controller, the emulated DAQ) SIGINT and SIGTERM are the operator's normal stop, and it
+  exits 0;
 - 141 (128 + SIGPIPE, what a shell reports for a tool killed by a closed pipe) when the
   reader of stdout went away early (``beamctl gains check | head -3``): the output is cut
   short, quietly.
@@ -18,7 +19,9 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
+import threading
 from typing import NoReturn
 
 from beamctl.gains.build import tool_version
@@ -75,9 +78,17 @@ def _discard_stdout() -> None:
     os.close(devnull)
 
 
+def _terminated(signum, _frame) -> NoReturn:
+    """SIGTERM ends a command as Ctrl-C does: through its clean-up (no half-written file)."""
+    raise Interrupted(signal.Signals(signum).name, "the command")
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run ``beamctl`` with ``argv`` (default: the process arguments); return the exit code."""
     name = "beamctl"
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _terminated)
     try:
         try:
             args = build_parser().parse_args(argv)
@@ -99,6 +110,9 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:
         _discard_stdout()
         return EXIT_BROKEN_PIPE
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

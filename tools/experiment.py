@@ -140,10 +140,18 @@ def paper_table(cfg: ServiceConfig) -> GainTable:
     return table
 
 
-def run_mode(mode: str, cfg: ServiceConfig, settings: dict, telemetry_dir: Path | None = None,
-             progress=None) -> RunTrace:
-    """One load ramp; full-rate telemetry into ``telemetry_dir/telemetry_<mode>.btl`` if given."""
-    table = load_gain_table(cfg) if mode != "paper" else paper_table(cfg)
+def experiment_tables(cfg: ServiceConfig, settings: dict) -> dict[str, GainTable]:
+    """The gain table of every run, in the order of the runs, each loaded and checked before
+    the first run starts (a table that may not run is refused now, not after two runs)."""
+    modes = MODES if settings["paper_mode"] else MODES[:2]
+    shipped = load_gain_table(cfg)
+    return {mode: paper_table(cfg) if mode == "paper" else shipped for mode in modes}
+
+
+def run_mode(mode: str, cfg: ServiceConfig, settings: dict, table: GainTable,
+             telemetry_dir: Path | None = None, progress=None) -> RunTrace:
+    """One load ramp with ``table``; full-rate telemetry into ``telemetry_dir/telemetry_<mode>.btl``
+    if given."""
     controller_cfg = replace(cfg.controller, pacing="sample",
                              anti_windup=cfg.controller.anti_windup if mode == "interpolate" else False)
     plant = build_plant(cfg, table)
@@ -248,20 +256,20 @@ def summarise(trace: RunTrace) -> dict:
     return out
 
 
-def run_experiment(cfg: ServiceConfig, settings: dict, telemetry_dir: Path | None = None, progress=None,
-                   modes: tuple[str, ...] | None = None) -> tuple[dict, dict[str, RunTrace]]:
-    """Run every mode; return the summary and the runs' traces. Full-rate telemetry of each
-    run goes into ``telemetry_dir`` if given."""
-    modes = modes or (MODES if settings["paper_mode"] else MODES[:2])
+def run_experiment(cfg: ServiceConfig, settings: dict, tables: dict[str, GainTable],
+                   telemetry_dir: Path | None = None, progress=None) -> tuple[dict, dict[str, RunTrace]]:
+    """Run every mode of ``tables`` (``experiment_tables``) in turn; return the summary and the
+    runs' traces. Full-rate telemetry of each run goes into ``telemetry_dir`` if given."""
+    modes = tuple(tables)
     traces = {}
     for k, mode in enumerate(modes):
         def step(fraction: float, label: str, k=k) -> None:
             if progress:
                 progress(round(1000 * (k + fraction) / len(modes)), 1000, f"run {k + 1}/{len(modes)} {label}")
-        traces[mode] = run_mode(mode, cfg, settings, telemetry_dir, step)
+        traces[mode] = run_mode(mode, cfg, settings, tables[mode], telemetry_dir, step)
     if progress:
         progress(1000, 1000, "done")
-    plant_model = build_plant(cfg, load_gain_table(cfg)).model
+    plant_model = build_plant(cfg, tables[modes[0]]).model
     summary: dict = {"critical_load_N": critical_load(build_model(cfg.model)),
                      "plant_critical_load_N": critical_load(plant_model)}
     names = {"uncontrolled": "uncontrolled", "interpolate": "controlled", "paper": "paper_switching"}

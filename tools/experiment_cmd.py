@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 from beamctl.tools import plots
-from beamctl.tools.experiment import load_experiment_config, run_experiment
+from beamctl.tools.experiment import experiment_tables, load_experiment_config, run_experiment
 from beamctl.tools.outputs import check_dir, write_text
 from beamctl.tools.progress import ProgressBar
 
@@ -65,12 +65,14 @@ def run(args: argparse.Namespace) -> int:
     if args.no_paper:
         settings = {**settings, "paper_mode": False}
     out = check_dir(args.out, "--out")
+    tables = experiment_tables(cfg, settings)
     # The folder holds one experiment's report: a previous one's figures and summaries go
     # now, so that a run cut short leaves nothing that could be taken for its result.
     remove_report(out)
     start = time.monotonic()
     with ProgressBar("experiment") as bar:
-        summary, traces = run_experiment(cfg, settings, out if args.telemetry else None, progress=bar)
+        summary, traces = run_experiment(cfg, settings, tables, out if args.telemetry else None,
+                                         progress=bar)
         bar.close()
     summary["wall_time_s"] = time.monotonic() - start
     table = summary_table(summary)

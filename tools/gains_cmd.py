@@ -108,13 +108,14 @@ def run_check(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({
             "points": [{"load_N": c.load_n, "spectral_radius": c.spectral_radius, "stable": c.stable,
-                        "min_damping": c.min_damping} for c in checks],
+                        "min_damping": c.min_damping, "gain_load_N": c.gain_load_n} for c in checks],
             "all_stable": all_stable, "sha256_matches": table.intact}, indent=1))
     else:
         print(f"{'load N':>8} {'spectral radius':>16} {'min damping':>12}  stable")
         for c in checks:
+            gain = "" if c.gain_load_n is None else f"  (gain of {c.gain_load_n:g} N)"
             print(f"{c.load_n:8.1f} {c.spectral_radius:16.6f} {c.min_damping:12.5f}  "
-                  f"{'yes' if c.stable else 'NO'}")
+                  f"{'yes' if c.stable else 'NO'}{gain}")
         print(f"all stable: {'yes' if all_stable else 'NO'}")
         if not table.intact:
             print("content SHA-256: DOES NOT MATCH (the file was changed after it was built; "

@@ -18,6 +18,7 @@ import errno
 import os
 import secrets
 import shutil
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -87,6 +88,18 @@ def check_file(path: str | Path, what: str) -> Path:
         raise OutputPathError(what, p, _reason(exc)) from None
     _check_writable_dir(p.parent, what, p)
     return p
+
+
+def check_new_file(path: str | Path, what: str) -> Path:
+    """``path`` can be written as a file and holds nothing yet: for a recording, which is never
+    overwritten (a name with ``strftime`` fields such as ``%Y%m%d-%H%M%S`` gives each run its
+    own file; they are filled in here)."""
+    p = Path(time.strftime(str(path)))
+    if p.exists() and p.is_file():
+        raise OutputPathError(what, p, "a recording is there already and is never overwritten; "
+                                       "give a new name, or one with the time in it such as "
+                                       "telemetry-%Y%m%d-%H%M%S.btl")
+    return check_file(p, what)
 
 
 def check_dir(path: str | Path, what: str) -> Path:

@@ -15,7 +15,6 @@ import json
 import signal
 import sys
 import threading
-import time
 from pathlib import Path
 
 from beamctl.hal.base import HalError
@@ -25,7 +24,7 @@ from beamctl.rt.controller import Controller
 from beamctl.rt.loop import ControlLoop
 from beamctl.rt.telemetry import TelemetryWriter
 from beamctl.tools.argtypes import seconds
-from beamctl.tools.outputs import check_file
+from beamctl.tools.outputs import check_file, check_new_file
 from beamctl.tools.sdnotify import Notifier
 from beamctl.tools.service import build_hal, load_gain_table, load_service_config
 
@@ -64,10 +63,10 @@ def _output_paths(args: argparse.Namespace, cfg) -> Path:
     if cfg.hal.backend == "can" and cfg.hal.can["record"]:
         check_file(cfg.hal.can["record"], f"{cfg.source}: hal.can.record")
     if args.telemetry:
-        return check_file(args.telemetry, "--telemetry")
+        return check_new_file(args.telemetry, "--telemetry")
     if cfg.telemetry:
-        return check_file(cfg.telemetry, f"{cfg.source}: run.telemetry")
-    return check_file(time.strftime("beamctl-%Y%m%d-%H%M%S.btl"), "telemetry")
+        return check_new_file(cfg.telemetry, f"{cfg.source}: run.telemetry")
+    return check_new_file("beamctl-%Y%m%d-%H%M%S.btl", "telemetry")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -107,15 +106,20 @@ def run(args: argparse.Namespace) -> int:
 
     loop = ControlLoop(controller, hal, telemetry=telemetry, stop_on_fault=False,
                        max_cycles=max_cycles, on_cycle=on_cycle if notifier.watchdog_interval else None)
+    rearm = None
     if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGUSR1, lambda *_: loop.request_rearm())
+        rearm = signal.signal(signal.SIGUSR1, lambda *_: loop.request_rearm())
     notifier.ready(f"running at {table.design.sample_rate_hz:g} Hz")
     try:
         result = loop.run(require_rt=args.require_rt)
     except realtime.RealtimeError as exc:
+        if telemetry.written == 0:      # refused before the first sample: no recording to keep
+            path.unlink(missing_ok=True)
         print(f"beamctl run: error: {exc}", file=sys.stderr)
         return 2
     finally:
+        if rearm is not None:
+            signal.signal(signal.SIGUSR1, rearm)
         notifier.stopping()
         hal.close()
     summary = {"state": result.state, "fault": result.fault, "reason": result.reason, "cycles": result.cycles,

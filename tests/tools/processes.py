@@ -13,9 +13,11 @@ def beamctl(*argv: str, cwd: Path, **kwargs) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, **kwargs)
 
 
-def interrupt_when(process: subprocess.Popen, marker: bytes, timeout_s: float = 300.0) -> tuple[int, str]:
-    """Send SIGINT once ``marker`` appears on the process's stderr (it is working); return the
-    exit status and all of stderr. A process that never shows the marker is killed."""
+def interrupt_when(process: subprocess.Popen, marker: bytes, timeout_s: float = 300.0,
+                   signum: int = signal.SIGINT) -> tuple[int, str]:
+    """Send ``signum`` (SIGINT: Ctrl-C) once ``marker`` appears on the process's stderr (it is
+    working); return the exit status and all of stderr. A process that never shows the marker
+    is killed."""
     watchdog = threading.Timer(timeout_s, process.kill)
     watchdog.start()
     try:
@@ -23,7 +25,7 @@ def interrupt_when(process: subprocess.Popen, marker: bytes, timeout_s: float = 
         for line in process.stderr:
             err += line
             if marker in line:
-                process.send_signal(signal.SIGINT)
+                process.send_signal(signum)
                 break
         rest = process.communicate(timeout=timeout_s)[1]
     finally:

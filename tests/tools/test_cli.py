@@ -2,6 +2,7 @@
 status, never a traceback, never a half-written file."""
 
 import fcntl
+import signal
 from pathlib import Path
 
 import pytest
@@ -170,13 +171,17 @@ def test_ctrl_c_anywhere_in_a_command_exits_130_in_one_line(monkeypatch, capsys)
     assert capsys.readouterr().err == "beamctl model: interrupted (SIGINT)\n"
 
 
-def test_ctrl_c_during_gains_build_exits_130_and_leaves_no_table(tmp_path):
+@pytest.mark.parametrize(("signum", "status", "said"), [
+    (signal.SIGINT, 130, "interrupted (SIGINT)"),
+    (signal.SIGTERM, 143, "interrupted (SIGTERM during the command)"),
+])
+def test_ctrl_c_or_sigterm_during_gains_build_leaves_no_table(tmp_path, signum, status, said):
     out = tmp_path / "gains" / "table.yaml"
-    # 401 grid points: long enough that SIGINT lands while it computes, on any machine
+    # 401 grid points: long enough that the signal lands while it computes, on any machine
     process = beamctl("gains", "build", "--grid", "0:4000:10", "--out", str(out), cwd=tmp_path)
-    status, err = interrupt_when(process, b"gains build:")
-    assert status == 130, err
-    assert err.splitlines()[-1] == "beamctl gains build: interrupted (SIGINT)", err
+    code, err = interrupt_when(process, b"gains build:", signum=signum)
+    assert code == status, err
+    assert err.splitlines()[-1] == f"beamctl gains build: {said}", err
     assert "Traceback" not in err
     assert not out.exists() and not (tmp_path / "gains").exists(), "no table, no temporary file"
 

@@ -14,6 +14,7 @@ from beamctl.tools import experiment_cmd, plots
 from beamctl.tools.cli import main
 from beamctl.tools.experiment import BOW_AMPLITUDE_M, Interrupted, experiment_config, run_mode
 from beamctl.tools.experiment_cmd import REPORT_FILES
+from beamctl.tools.service import load_gain_table
 from tests.tools.processes import beamctl, interrupt_when
 
 CRITICAL_LOAD_N = 3193.5
@@ -131,7 +132,7 @@ def test_a_signal_during_a_run_ramps_to_bias_and_raises_interrupted(tmp_path):
         signal.raise_signal(signal.SIGINT)
 
     with pytest.raises(Interrupted) as info:
-        run_mode("uncontrolled", cfg, settings, tmp_path, progress=ctrl_c)
+        run_mode("uncontrolled", cfg, settings, load_gain_table(cfg), tmp_path, progress=ctrl_c)
     assert str(info.value) == "SIGINT during the uncontrolled run" and info.value.exit_status == 130
     header, rows = read_telemetry(tmp_path / "telemetry_uncontrolled.btl")
     assert len(rows) > 500, "what was recorded is kept"

@@ -36,7 +36,7 @@ def test_check_json_lists_every_point_and_midpoint(tmp_path, capsys):
     result = json.loads(capsys.readouterr().out)
     assert [p["load_N"] for p in result["points"]] == [0.0, 500.0, 1000.0, 1500.0, 2000.0]
     assert result["all_stable"] is True
-    assert set(result["points"][0]) == {"load_N", "spectral_radius", "stable", "min_damping"}
+    assert set(result["points"][0]) == {"load_N", "spectral_radius", "stable", "min_damping", "gain_load_N"}
 
 
 def test_show_prints_the_design_and_plots_gains(tmp_path, capsys):

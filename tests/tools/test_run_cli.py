@@ -157,3 +157,39 @@ def test_ctrl_c_is_the_operator_s_stop_and_exits_0(tmp_path):
         process.kill()
     assert process.returncode == 0, err
     assert b"stopped by SIGINT" in out and b"ended STOPPED" in out and b"Traceback" not in err
+
+
+def test_a_recording_is_never_overwritten(tmp_path, capsys):
+    """The lab's service restarts with the same configuration: a telemetry path that holds a
+    recording is refused before anything runs, and a name with the time in it gives each
+    start its own file."""
+    tel = tmp_path / "run.btl"
+    tel.write_bytes(b"the recording of an earlier run")
+    cfg = _config(tmp_path, **SIM, run={"telemetry": str(tel), "duration": 0.1})
+    assert main(["run", "--config", cfg]) == 2
+    err = capsys.readouterr().err
+    assert str(tel) in err and "never overwritten" in err and len(err.strip().splitlines()) == 1, err
+    assert tel.read_bytes() == b"the recording of an earlier run"
+    pattern = _config(tmp_path, **SIM, run={"telemetry": str(tmp_path / "run-%Y%m%d-%H%M%S.btl"),
+                                            "duration": 0.1})
+    assert main(["run", "--config", pattern]) == 0
+    made = sorted(p.name for p in tmp_path.glob("run-*.btl"))
+    assert len(made) == 1 and made[0] != "run-%Y%m%d-%H%M%S.btl", made
+    assert len(read_telemetry(tmp_path / made[0])[1]) > 0
+
+
+def test_a_refused_real_time_start_leaves_no_telemetry_file(tmp_path, capsys, monkeypatch):
+    """--require-rt on a machine that refuses SCHED_FIFO: exit 2 in one line, and no empty
+    recording left behind."""
+    from beamctl.rt import realtime
+
+    def refuse(settings, require=False):
+        raise realtime.RealtimeError("real-time privileges refused (--require-rt): scheduler refused")
+
+    monkeypatch.setattr(realtime, "acquire", refuse)
+    tel = tmp_path / "rt.btl"
+    cfg = _config(tmp_path, **SIM, run={"telemetry": str(tel), "duration": 0.1})
+    assert main(["run", "--config", cfg, "--require-rt"]) == 2
+    err = capsys.readouterr().err
+    assert "--require-rt" in err and "Traceback" not in err
+    assert not tel.exists(), "a stub telemetry file was left behind"

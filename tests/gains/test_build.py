@@ -1,0 +1,48 @@
+"""Building a table: the closed-loop check covers every gain where the schedule can run it."""
+
+import numpy as np
+import pytest
+
+from beamctl.gains.build import build_table, check_plan, check_points
+from beamctl.gains.discrete import check_load, velocity_filter
+from beamctl.gains.schedule import GainSchedule
+
+
+@pytest.fixture(scope="module")
+def paper_table(paper_model):
+    return build_table(paper_model, [0.0, 500.0, 1000.0, 1500.0], mode="paper")
+
+
+def test_paper_switching_is_checked_at_the_ends_of_each_gain_s_hysteresis_band(paper_table):
+    """Rising, gain i stays on up to L_i + h/2; falling, down to L_(i-1) - h/2: there the loop
+    runs a gain the settled schedule never shows at that load, so the check must look."""
+    edges = {(c.load_n, c.gain_load_n) for c in paper_table.checks if c.gain_load_n is not None}
+    assert edges == {(25.0, 0.0), (525.0, 500.0), (1025.0, 1000.0),
+                     (475.0, 1000.0), (975.0, 1500.0)}, sorted(edges)
+    settled = [c.load_n for c in paper_table.checks if c.gain_load_n is None]
+    assert settled == check_points(paper_table.loads_n)
+    assert paper_table.all_stable and not paper_table.forced
+
+
+def test_each_check_uses_the_gain_it_names(paper_model, paper_table):
+    filt = velocity_filter(paper_table.design.velocity_cutoff_hz, paper_table.design.sample_rate_hz)
+    for load, gain_load, gain in check_plan(paper_table):
+        expected = (GainSchedule(paper_table).gain_at(load) if gain_load is None
+                    else paper_table.gains[list(paper_table.loads_n).index(gain_load)])
+        np.testing.assert_array_equal(gain, expected, err_msg=f"check at {load} N")
+    c = next(c for c in paper_table.checks if c.gain_load_n == 500.0)
+    direct = check_load(paper_model, c.load_n, paper_table.gains[1], paper_table.c0_phi_inv, filt)
+    assert c.spectral_radius == direct.spectral_radius
+
+
+def test_an_interpolated_table_is_checked_at_points_and_midpoints_only(paper_model):
+    table = build_table(paper_model, [0.0, 1000.0, 2000.0])
+    assert [c.load_n for c in table.checks] == check_points(table.loads_n)
+    assert all(c.gain_load_n is None for c in table.checks)
+
+
+def test_force_marks_only_a_table_written_in_spite_of_an_unstable_point(paper_model):
+    """`--force` on a grid that turns out stable gives an ordinary table the service runs."""
+    assert not build_table(paper_model, [0.0, 1000.0], force=True).forced
+    unstable = build_table(paper_model, [4000.0, 4500.0], force=True)
+    assert unstable.forced and not unstable.all_stable
