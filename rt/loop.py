@@ -53,6 +53,7 @@ class ControlLoop:
                  telemetry: TelemetryWriter | None = None, max_cycles: int | None = None,
                  stop_on_fault: bool = True, start: bool = True, spin_time: float = 2e-4,
                  clock: Callable[[], float] = time.perf_counter,
+                 sleep: Callable[[float], None] = time.sleep,
                  on_cycle: Callable[[ControlLoop], None] | None = None) -> None:
         self.controller = controller
         self.hal = hal
@@ -66,6 +67,7 @@ class ControlLoop:
         self._rearm_requested = False
         self.spin_time = spin_time
         self.clock = clock
+        self.sleep = sleep
         self.on_cycle = on_cycle
         self.timing = LoopTiming()
         self.period = controller.period
@@ -234,7 +236,7 @@ class ControlLoop:
                 timing.overrun_streak = 0
             remaining = next_deadline - self.spin_time - clock()
             if remaining > 0:
-                time.sleep(remaining)
+                self.sleep(remaining)
             while clock() < next_deadline:
                 pass
             next_deadline += period
