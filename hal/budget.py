@@ -42,7 +42,7 @@ class Budget:
     sample_rate_hz: float
     load: float                   # fraction of the bus time in use
     per_message: dict             # name -> fraction
-    max_sample_rate_hz: float     # highest rate at LIMIT
+    max_sample_rate_hz: float     # highest whole-hertz rate within LIMIT
     description: str
 
 
@@ -61,7 +61,7 @@ def bus_budget(contract: Contract, sample_rate_hz: float, bitrate: float, fd: bo
         else f"classic CAN {bitrate / 1e3:g} kbit/s"
     return Budget(sample_rate_hz=sample_rate_hz, load=total * sample_rate_hz,
                   per_message={k: v * sample_rate_hz for k, v in per_sample.items()},
-                  max_sample_rate_hz=LIMIT / total, description=kind)
+                  max_sample_rate_hz=float(math.floor(LIMIT / total)), description=kind)
 
 
 def check_budget(contract: Contract, sample_rate_hz: float, bitrate: float, fd: bool = False,

@@ -16,7 +16,7 @@ from beamctl.hal.base import Sample
 from beamctl.rt.config import controller_config
 from beamctl.rt.controller import Controller
 from beamctl.tools.argtypes import steps
-from beamctl.tools.experiment import Interrupted
+from beamctl.tools.signals import Interrupted
 
 
 def percentiles_us(seconds: np.ndarray) -> dict:

@@ -24,12 +24,12 @@ import sys
 import threading
 from typing import NoReturn
 
-from beamctl.gains.build import tool_version
-from beamctl.models.schema import ConfigError
-from beamctl.rt.telemetry import TelemetryError
-from beamctl.tools import bench_cmd, experiment_cmd, gains_cmd, log_cmd, model_cmd, plant_cmd, run_cmd
-from beamctl.tools.experiment import Interrupted
 from beamctl.tools.outputs import OutputPathError
+from beamctl.tools.signals import Interrupted
+
+# Only the standard library and the two modules above are imported before main() runs: the
+# rest (numpy, scipy, python-can: about a second) is imported inside it, so that a Ctrl-C
+# even then ends in one line, not a traceback.
 
 EXIT_BAD_INPUT = 2
 EXIT_SIGINT = 130
@@ -45,6 +45,9 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from beamctl.gains.build import tool_version
+    from beamctl.tools import bench_cmd, experiment_cmd, gains_cmd, log_cmd, model_cmd, plant_cmd, run_cmd
+
     parser = _Parser(
         prog="beamctl",
         description="Active buckling control of a beam-column with piezo-elastic supports.")
@@ -78,17 +81,12 @@ def _discard_stdout() -> None:
     os.close(devnull)
 
 
-def _terminated(signum, _frame) -> NoReturn:
-    """SIGTERM ends a command as Ctrl-C does: through its clean-up (no half-written file)."""
-    raise Interrupted(signal.Signals(signum).name, "the command")
+def _run(argv: list[str] | None) -> int:
+    """Parse ``argv`` and run the command; every refusal and interruption in one line."""
+    from beamctl.models.schema import ConfigError
+    from beamctl.rt.telemetry import TelemetryError
 
-
-def main(argv: list[str] | None = None) -> int:
-    """Run ``beamctl`` with ``argv`` (default: the process arguments); return the exit code."""
     name = "beamctl"
-    previous = None
-    if threading.current_thread() is threading.main_thread():
-        previous = signal.signal(signal.SIGTERM, _terminated)
     try:
         try:
             args = build_parser().parse_args(argv)
@@ -110,6 +108,26 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:
         _discard_stdout()
         return EXIT_BROKEN_PIPE
+
+
+def _terminated(signum, _frame) -> NoReturn:
+    """SIGTERM ends a command as Ctrl-C does: through its clean-up (no half-written file)."""
+    raise Interrupted(signal.Signals(signum).name, "the command")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run ``beamctl`` with ``argv`` (default: the process arguments); return the exit code."""
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _terminated)
+    try:
+        return _run(argv)
+    except KeyboardInterrupt:           # while the libraries were still being imported
+        print("beamctl: interrupted (SIGINT)", file=sys.stderr)
+        return EXIT_SIGINT
+    except Interrupted as exc:
+        print(f"beamctl: interrupted ({exc})", file=sys.stderr)
+        return exc.exit_status
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)

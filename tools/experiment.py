@@ -22,7 +22,6 @@ have no curvature there (0.05 mm at 2000 N with the default bow), which gauges c
 from __future__ import annotations
 
 import math
-import signal
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -45,6 +44,7 @@ from beamctl.tools.service import (
     plant_geometry,
     service_config,
 )
+from beamctl.tools.signals import Interrupted
 
 MODES = ("uncontrolled", "interpolate", "paper")
 DECIMATE = 10
@@ -86,19 +86,6 @@ class RunTrace:
 
     def arrays(self) -> dict:
         return {k: np.asarray(v) for k, v in self.__dict__.items() if isinstance(v, list)}
-
-
-class Interrupted(Exception):
-    """A signal stopped a simulated run (after the loop ramped the stacks to bias)."""
-
-    def __init__(self, signal_name: str, during: str) -> None:
-        self.signal_name = signal_name
-        super().__init__(f"{signal_name} during {during}")
-
-    @property
-    def exit_status(self) -> int:
-        """128 + the signal's number, as a shell reports a command a signal ended."""
-        return 128 + signal.Signals[self.signal_name].value
 
 
 def experiment_config(data: dict | None = None, source: str = "") -> tuple[ServiceConfig, dict]:

@@ -85,7 +85,9 @@ def run_budget(args: argparse.Namespace) -> int:
         print(f"beamctl bus-budget: error: {exc}", file=sys.stderr)
         return 2
     b = bus_budget(contract, args.rate, args.bitrate, args.fd, args.data_bitrate)
-    print(f"{b.description}, {args.rate:g} Hz: bus load {100 * b.load:.1f} % "
+    # near the limit one decimal would show "80.0 % (exceeds the 80 % limit)": show enough
+    digits = 1 if abs(b.load - LIMIT) >= 5e-4 else 3
+    print(f"{b.description}, {args.rate:g} Hz: bus load {100 * b.load:.{digits}f} % "
           f"({'fits' if b.load <= LIMIT else 'exceeds'} the {100 * LIMIT:.0f} % limit)")
     for name, share in b.per_message.items():
         codec = next(c for c in contract.codecs.values() if c.name == name)

@@ -76,8 +76,8 @@ def run(args: argparse.Namespace) -> int:
     notifier = Notifier()
     try:
         hal = build_hal(cfg, table)
-    except HalError as exc:
-        print(f"beamctl run: error: {exc}", file=sys.stderr)
+    except HalError as exc:             # the hal section describes a bus or DBC it cannot have
+        print(f"beamctl run: error: {cfg.source}: hal.{cfg.hal.backend}: {exc}", file=sys.stderr)
         return 2
     _check_voltage_range(cfg, hal)
     controller = Controller(table, cfg.controller)

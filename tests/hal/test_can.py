@@ -194,13 +194,19 @@ def test_classic_frame_length_with_worst_case_stuffing():
 
 
 def test_default_frames_fit_classic_can_at_2500_hz_and_the_limit_is_said():
+    """Per sample: two 8-byte frames (strains, voltages), a 3-byte load frame every 10th and a
+    4-byte heartbeat every 25th sample, each with worst-case stuffing, at 1 Mbit/s."""
+    bits_per_sample = 2 * classic_frame_bits(8) + classic_frame_bits(3) / 10 + classic_frame_bits(4) / 25
     b = check_budget(CONTRACT, 2500.0, 1e6)
-    assert 0.69 < b.load < 0.72 and 2800 < b.max_sample_rate_hz < 2900
-    assert bus_budget(CONTRACT, 2000.0, 1e6).load < 0.6
+    assert b.load == pytest.approx(2500.0 * bits_per_sample / 1e6, rel=1e-12)
+    highest = int(0.8e6 / bits_per_sample)                  # whole hertz within 80 %
+    assert b.max_sample_rate_hz == highest
+    assert bus_budget(CONTRACT, highest, 1e6).load <= 0.8 < bus_budget(CONTRACT, highest + 1, 1e6).load
     with pytest.raises(HalConfigurationError) as err:
         check_budget(CONTRACT, 3000.0, 1e6)
     message = str(err.value)
-    assert "84.7 %" in message and "at most 2834 Hz" in message and "CAN FD" in message
+    assert f"{100 * 3000.0 * bits_per_sample / 1e6:.1f} %" in message, message
+    assert f"at most {highest} Hz" in message and "CAN FD" in message, message
     fd = check_budget(CONTRACT, 5000.0, 1e6, fd=True, data_bitrate=4e6)
     assert fd.max_sample_rate_hz > 6000
 

@@ -3,6 +3,8 @@ status, never a traceback, never a half-written file."""
 
 import fcntl
 import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -198,3 +200,24 @@ def test_a_reader_that_stops_early_ends_the_command_quietly(tmp_path):
     err = process.communicate(timeout=300)[1].decode()
     assert process.returncode == 141, err
     assert "Traceback" not in err and "BrokenPipeError" not in err and "Exception ignored" not in err, err
+
+
+def test_the_command_line_starts_without_the_heavy_libraries(tmp_path):
+    """numpy, scipy and python-can take about a second to import: they are imported inside
+    main(), so a Ctrl-C even then ends in one line rather than a traceback."""
+    heavy = "('numpy', 'scipy', 'can', 'cantools', 'matplotlib')"
+    code = f"import sys, beamctl.tools.cli; print(sorted(m for m in {heavy} if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path,
+                         check=True, timeout=120)
+    assert out.stdout.strip() == "[]", out.stdout
+
+
+def test_ctrl_c_before_the_command_is_known_is_one_line(monkeypatch, capsys):
+    from beamctl.tools import cli
+
+    def interrupted():
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "build_parser", interrupted)
+    assert main(["model"]) == 130
+    assert capsys.readouterr().err == "beamctl: interrupted (SIGINT)\n"

@@ -12,9 +12,10 @@ from beamctl.rt.safety import State
 from beamctl.rt.telemetry import read_telemetry
 from beamctl.tools import experiment_cmd, plots
 from beamctl.tools.cli import main
-from beamctl.tools.experiment import BOW_AMPLITUDE_M, Interrupted, experiment_config, run_mode
+from beamctl.tools.experiment import BOW_AMPLITUDE_M, experiment_config, run_mode
 from beamctl.tools.experiment_cmd import REPORT_FILES
 from beamctl.tools.service import load_gain_table
+from beamctl.tools.signals import Interrupted
 from tests.tools.processes import beamctl, interrupt_when
 
 CRITICAL_LOAD_N = 3193.5

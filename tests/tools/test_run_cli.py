@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 import yaml
 
+from beamctl.hal.budget import bus_budget
+from beamctl.hal.dbc import Contract
 from beamctl.hal.emulator import CanPlantEmulator
 from beamctl.rt.controller import COL
 from beamctl.rt.telemetry import read_telemetry
@@ -50,7 +52,10 @@ def test_a_bus_over_budget_is_refused_with_what_would_fit(tmp_path, capsys):
                                                             "bitrate": 500000}})
     assert main(["run", "--config", cfg]) == 2
     err = capsys.readouterr().err
-    assert "bus load" in err and "at most 1417 Hz" in err and "CAN FD" in err
+    highest = int(bus_budget(Contract(), 2500.0, 500e3).max_sample_rate_hz)
+    assert f"{cfg}: hal.can:" in err and "bus load" in err, err
+    assert f"at most {highest} Hz" in err and "CAN FD" in err, err
+    assert len(err.strip().splitlines()) == 1, err
 
 
 def test_a_forced_table_is_refused(tmp_path, capsys):
