@@ -27,7 +27,9 @@ DATA_BITRATE_MAX = 8e6
 
 HAL_DEFAULTS: dict[str, Any] = {
     "backend": "sim",
-    "sim": {"pace": "simulated", "own_actuators": False,
+    # wallclock: `beamctl run` on the simulated beam runs in real time like the rig (the
+    # experiment and the benchmarks choose `simulated`, as fast as the loop, themselves)
+    "sim": {"pace": "wallclock", "own_actuators": False,
             "actuators": {"force_constant": 3.0, "bias_voltage": 75.0, "orientation_deg": [90.0, 90.0]}},
     "can": {"interface": "socketcan", "channel": "can0", "bitrate": 1_000_000, "fd": False,
             "data_bitrate": 4_000_000, "dbc": "", "record": "", "rate_tolerance": 0.05},

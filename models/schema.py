@@ -247,7 +247,10 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
     try:
         data = yaml.load(text_, Loader=_Loader)  # noqa: S506 (safe loader subclass)
     except yaml.YAMLError as exc:
-        raise ConfigError("", str(p), f"valid YAML ({exc})") from None
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+        what = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ConfigError("", str(p), f"valid YAML ({where}{what})") from None
     if data is None:
         return {}
     if not isinstance(data, dict):

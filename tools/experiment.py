@@ -33,9 +33,10 @@ from beamctl.gains.table import GainTable, require_checked
 from beamctl.hal.sim import SimBackend
 from beamctl.models import build_model, critical_load, reduce
 from beamctl.models.analysis import lateral_displacements
-from beamctl.models.schema import boolean, merge, positive, read_yaml, validate
+from beamctl.models.schema import ConfigError, boolean, merge, positive, read_yaml, validate
 from beamctl.rt.controller import Controller
 from beamctl.rt.loop import ControlLoop
+from beamctl.rt.safety import Fault
 from beamctl.rt.telemetry import TelemetryWriter
 from beamctl.tools.service import (
     ServiceConfig,
@@ -92,7 +93,12 @@ def experiment_config(data: dict | None = None, source: str = "") -> tuple[Servi
     """The scenario over the shipped defaults: (service config, experiment settings)."""
     merged = merge(SCENARIO, data or {})
     experiment = validate(merged.pop("experiment"), _EXPERIMENT_SCHEMA, source, "experiment.")
-    return service_config(merged, source), experiment
+    cfg = service_config(merged, source)
+    if cfg.hal.backend != "sim":
+        raise ConfigError("hal.backend", cfg.hal.backend,
+                          "'sim': beamctl experiment runs the simulated rig (`beamctl run` drives "
+                          "the rig over CAN)", source)
+    return cfg, experiment
 
 
 def load_experiment_config(path: str | Path | None) -> tuple[ServiceConfig, dict]:
@@ -153,7 +159,7 @@ def run_mode(mode: str, cfg: ServiceConfig, settings: dict, table: GainTable,
 
     def monitor(loop: ControlLoop) -> None:
         counter["n"] += 1
-        if counter["n"] % DECIMATE:
+        if trace.end or counter["n"] % DECIMATE:    # after its end the run is over: not recorded
             return
         d, dy, dz = deflection(controller.q)
         v = controller.voltages
@@ -169,13 +175,14 @@ def run_mode(mode: str, cfg: ServiceConfig, settings: dict, table: GainTable,
             trace.voltages.append((plant.axial_load, *v.tolist()))
             if progress:
                 progress(min(plant.time / end_time, 1.0), f"{mode} {plant.axial_load:4.0f} N")
-        if not trace.end:
-            if d > limit:
-                trace.end = f"deflection passed {limit * 1e3:g} mm at {plant.axial_load:.0f} N"
-                loop.request_stop("deflection limit")
-            elif plant.time >= end_time:
-                trace.end = f"ramp ended at {plant.axial_load:.0f} N"
-                loop.request_stop("end of ramp")
+        if d > limit:
+            trace.end = f"deflection passed {limit * 1e3:g} mm at {plant.axial_load:.0f} N"
+        elif plant.time >= end_time:
+            trace.end = f"ramp ended at {plant.axial_load:.0f} N"
+        if trace.end:
+            supervisor = controller.supervisor
+            trace.fault = supervisor.reason() if supervisor.fault != Fault.NONE else ""
+            loop.request_stop(trace.end)
 
     hal.open()
     telemetry = None
@@ -196,7 +203,6 @@ def run_mode(mode: str, cfg: ServiceConfig, settings: dict, table: GainTable,
         raise Interrupted(result.signal_received, f"the {mode} run")
     trace.wall_s = time.perf_counter() - start
     trace.plant_s = plant.time
-    trace.fault = result.reason if result.fault != "NONE" else ""
     return trace
 
 

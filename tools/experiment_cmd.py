@@ -24,7 +24,8 @@ def add_parser(sub) -> None:
                                    "controlled with the interpolated schedule, then with the paper's "
                                    "500 N switching; write a report folder.")
     p.add_argument("--config", metavar="F", help="scenario file (plant, controller, model, experiment)")
-    p.add_argument("--out", metavar="DIR", default="experiment-report", help="report folder")
+    p.add_argument("--out", metavar="DIR", default="experiment-report",
+                   help="report folder (default: experiment-report here)")
     p.add_argument("--telemetry", action="store_true",
                    help="also record each run's full-rate telemetry into the report folder "
                         "(telemetry_<mode>.btl, about 40 MB a run with the default scenario)")
@@ -49,6 +50,9 @@ def summary_table(summary: dict) -> str:
     line("max deflection < 3000 N (beam)", "true_max_deflection_below_3000N_mm", " mm", 3, "-")
     line("voltage range min", "min_voltage_V", " V", 1, "")
     line("voltage range max", "max_voltage_V", " V", 1, "150 V at failure")
+    # a fault before the run's end (the controller ramped the stacks to bias): its reason's name
+    rows.append(("controller fault", *[(r.get("fault") or "-").split(":")[0] if r else "-" for r in runs],
+                 ""))
     widths = [max(len(r[i]) for r in rows) for i in range(5)]
     text = "\n".join("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)) for r in rows)
     return f"critical load Fx,cr = {summary['critical_load_N']:.0f} N\n" + text

@@ -43,7 +43,8 @@ def add_parser(sub) -> None:
                    help="load grid in N (default 0:4000:50; paper mode 0:3500:500)")
     b.add_argument("--mode", choices=("interpolate", "paper"), default="interpolate",
                    help="schedule: linear interpolation, or the paper's stepwise switching")
-    b.add_argument("--out", metavar="FILE", default="gain-table.yaml", help="where to write the table")
+    b.add_argument("--out", metavar="FILE", default="gain-table.yaml",
+                   help="where to write the table (default: gain-table.yaml here)")
     b.add_argument("--force", action="store_true",
                    help="write the table even if the closed loop is unstable somewhere (marked forced)")
     b.set_defaults(run=run_build)
@@ -59,13 +60,13 @@ def add_parser(sub) -> None:
     s.set_defaults(run=run_show)
 
 
-def _load(file: str | None) -> GainTable:
+def _load(file: str | None, action: str) -> GainTable:
     """The table as it is (changed, unchecked or forced), for inspection; a changed one is
     reported on stderr."""
     path = file or default_table_path()
     table = load_table(path, verify=False)
     if not table.intact:
-        print(f"beamctl gains: warning: {path}: the content does not match its SHA-256: "
+        print(f"beamctl gains {action}: warning: {path}: the content does not match its SHA-256: "
               f"{changed_file_message(path)}; `beamctl run` refuses it", file=sys.stderr)
     return table
 
@@ -97,7 +98,7 @@ def run_build(args: argparse.Namespace) -> int:
 
 
 def run_check(args: argparse.Namespace) -> int:
-    table = _load(args.file)
+    table = _load(args.file, "check")
     model = build_model(table.model_parameters)
     bar = None if args.json else ProgressBar("gains check")
     with bar or contextlib.nullcontext():
@@ -111,13 +112,16 @@ def run_check(args: argparse.Namespace) -> int:
                         "min_damping": c.min_damping, "gain_load_N": c.gain_load_n} for c in checks],
             "all_stable": all_stable, "sha256_matches": table.intact}, indent=1))
     else:
+        print(f"gain table {args.file or default_table_path()}")
         print(f"{'load N':>8} {'spectral radius':>16} {'min damping':>12}  stable")
         for c in checks:
             gain = "" if c.gain_load_n is None else f"  (gain of {c.gain_load_n:g} N)"
             print(f"{c.load_n:8.1f} {c.spectral_radius:16.6f} {c.min_damping:12.5f}  "
                   f"{'yes' if c.stable else 'NO'}{gain}")
         print(f"all stable: {'yes' if all_stable else 'NO'}")
-        if not table.intact:
+        if table.intact:
+            print("content SHA-256: matches (the table is as it was built)")
+        else:
             print("content SHA-256: DOES NOT MATCH (the file was changed after it was built; "
                   "`beamctl run` refuses it)")
     return 0 if all_stable and table.intact else 1
@@ -125,7 +129,7 @@ def run_check(args: argparse.Namespace) -> int:
 
 def run_show(args: argparse.Namespace) -> int:
     plot_dir = check_dir(args.plot, "--plot") if args.plot else None
-    table = _load(args.file)
+    table = _load(args.file, "show")
     d, s = table.design, table.schedule
     print(f"gain table: {args.file or default_table_path()}")
     print(f"created {table.created} by beamctl {table.tool_version}; "

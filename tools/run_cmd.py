@@ -139,4 +139,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"  telemetry: {tel.get('written', 0)} records, {tel.get('dropped', 0)} dropped, "
               f"{tel.get('path', '')}")
         print(f"  ended {result.state}: {result.reason} (stopped by {result.stop_requested_by or '-'})")
+    dropped = result.telemetry.get("dropped", 0)
+    if dropped:
+        print(f"beamctl run: warning: {dropped} of {dropped + result.telemetry.get('written', 0)} "
+              f"telemetry records were dropped: the writer fell a whole ring "
+              f"(controller.telemetry.buffer_time) behind the loop", file=sys.stderr)
     return 0

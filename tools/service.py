@@ -91,6 +91,11 @@ def load_service_config(path: str | Path | None) -> ServiceConfig:
 def load_gain_table(cfg: ServiceConfig) -> GainTable:
     """The configured table, refused unless designed for exactly the configured model, its
     content matches its SHA-256, and its closed-loop check is there and passed."""
+    if not cfg.table_path.is_file():
+        raise ConfigError("gains.table", str(cfg.table_path),
+                          f"an existing gain table file (relative paths are taken from the current "
+                          f"directory; build one with `beamctl gains build --out {cfg.table_path}`)",
+                          cfg.source)
     return load_table(cfg.table_path, cfg.model)
 
 

@@ -5,6 +5,7 @@ import math
 import pytest
 
 from beamctl.models import ConfigError, build_model, load_parameters, parameters_from_dict, reduce
+from beamctl.models.schema import read_yaml
 
 
 def test_defaults_are_table_1_of_the_paper(paper_params):
@@ -150,3 +151,12 @@ def test_digest_identifies_the_parameter_set(paper_params):
     assert same.digest() == paper_params.digest()
     assert other.digest() != paper_params.digest()
     assert len(paper_params.digest()) == 64 and not math.isnan(int(paper_params.digest(), 16))
+
+
+def test_a_yaml_syntax_error_is_one_line_naming_where(tmp_path):
+    f = tmp_path / "broken.yaml"
+    f.write_text("plant:\n  bow: {amplitude: [1}\n")
+    with pytest.raises(ConfigError) as err:
+        read_yaml(f)
+    message = str(err.value)
+    assert "\n" not in message and str(f) in message and "line 2" in message, message

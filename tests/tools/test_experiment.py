@@ -173,3 +173,26 @@ def test_ctrl_c_during_the_experiment_exits_130_with_no_summary_or_figure(tmp_pa
     assert left and all(name.startswith("telemetry_") for name in left), left
     for name in left:
         read_telemetry(out / name)
+
+
+def test_a_run_is_recorded_until_its_end_not_through_the_stop(tmp_path, capsys):
+    """A ramp that ends at 2800 N, below the critical load: the controlled beam stays straight
+    to the end; the stop's ramp to bias afterwards (when the uncontrolled beam sags back to its
+    2800 N equilibrium) is not part of the run and must not show as a deflection."""
+    scenario = tmp_path / "short.yaml"
+    scenario.write_text("plant:\n  load: {start: 260.0, end: 2800.0, rate: 400.0, hold: 0.1}\n")
+    assert main(["experiment", "--config", str(scenario), "--out", str(tmp_path / "r"), "--no-paper",
+                 "--json"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    c = s["controlled"]
+    assert c["end"] == "ramp ended at 2800 N" and c["fault"] == "", c
+    assert c["max_deflection_below_3000N_mm"] < 0.05, c
+
+
+def test_an_experiment_on_another_backend_is_refused(tmp_path, capsys):
+    f = tmp_path / "can.yaml"
+    f.write_text("hal: {backend: can}\n")
+    assert main(["experiment", "--config", str(f), "--out", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err
+    assert "hal.backend" in err and "simulated rig" in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "r").exists()

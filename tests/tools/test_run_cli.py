@@ -198,3 +198,11 @@ def test_a_refused_real_time_start_leaves_no_telemetry_file(tmp_path, capsys, mo
     err = capsys.readouterr().err
     assert "--require-rt" in err and "Traceback" not in err
     assert not tel.exists(), "a stub telemetry file was left behind"
+
+
+def test_a_missing_gain_table_is_refused_naming_the_key_and_what_to_run(tmp_path, capsys):
+    cfg = _config(tmp_path, **SIM, gains={"table": str(tmp_path / "nothere.yaml")})
+    assert main(["run", "--config", cfg]) == 2
+    err = capsys.readouterr().err
+    assert "gains.table" in err and cfg in err and "beamctl gains build --out" in err, err
+    assert len(err.strip().splitlines()) == 1, err
