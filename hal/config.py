@@ -22,8 +22,8 @@ from beamctl.models.schema import (
 # (the slowest of the standard rates, CiA 301) to 1 Mbit/s (the most ISO 11898-2 allows). The
 # CAN FD data phase: from the arbitration rate (it is never slower) up to 8 Mbit/s, the fastest
 # transceivers specified for it (ISO 11898-2:2016 with signal improvement, CiA 601-4).
-BITRATE_RANGE = (10e3, 1e6)
-DATA_BITRATE_MAX = 8e6
+BITRATE_RANGE_BIT_S = (10e3, 1e6)
+DATA_BITRATE_MAX_BIT_S = 8e6
 
 HAL_DEFAULTS: dict[str, Any] = {
     "backend": "sim",
@@ -56,15 +56,15 @@ class HalConfig:
 def check_bitrates(bitrate: float, data_bitrate: float, fd: bool, keys: tuple[str, str],
                    source: str = "") -> None:
     """Refuse a bit rate no CAN bus has (the data phase's only with ``fd``), naming ``keys``."""
-    low, high = BITRATE_RANGE
+    low, high = BITRATE_RANGE_BIT_S
     if not low <= bitrate <= high:
         raise ConfigError(keys[0], bitrate,
                           f"a CAN bit rate from {low / 1e3:g} kbit/s to {high / 1e6:g} Mbit/s "
                           f"(classic CAN, and the arbitration phase of CAN FD)", source)
-    if fd and not bitrate <= data_bitrate <= DATA_BITRATE_MAX:
+    if fd and not bitrate <= data_bitrate <= DATA_BITRATE_MAX_BIT_S:
         raise ConfigError(keys[1], data_bitrate,
                           f"a CAN FD data-phase bit rate from the arbitration rate "
-                          f"({bitrate / 1e3:g} kbit/s) to {DATA_BITRATE_MAX / 1e6:g} Mbit/s", source)
+                          f"({bitrate / 1e3:g} kbit/s) to {DATA_BITRATE_MAX_BIT_S / 1e6:g} Mbit/s", source)
 
 
 def hal_config(overrides: dict[str, Any] | None = None, source: str = "", prefix: str = "hal.") -> HalConfig:

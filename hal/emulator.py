@@ -147,6 +147,16 @@ class CanPlantEmulator:
         self._thread.start()
         return self
 
+    @property
+    def running(self) -> bool:
+        """Started in its own thread (``start``) and not yet finished."""
+        return self._thread is not None and self._thread.is_alive()
+
+    def join(self, timeout: float | None = None) -> None:
+        """Wait for a started emulator to finish (``max_samples`` reached, or stopped)."""
+        if self._thread is not None:
+            self._thread.join(timeout)
+
     def stop(self) -> None:
         self.stop_event.set()
         if self._thread is not None:

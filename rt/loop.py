@@ -104,7 +104,7 @@ class ControlLoop:
             self._arm()
             try:
                 self._cycle_until_done()
-            except Exception:
+            except BaseException:       # a bug, or an exit from a callback: the stacks first
                 self._emergency_ramp()
                 raise
         finally:

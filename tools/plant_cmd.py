@@ -58,9 +58,10 @@ def run_plant(args: argparse.Namespace) -> int:
         print(f"beamctl plant: error: cannot open {interface}:{channel}: {exc}", file=sys.stderr)
         return 2
     emulator = CanPlantEmulator(bus, plant, plant_geometry(cfg), pace=args.pace)
-    if threading.current_thread() is threading.main_thread():
+    previous = {}
+    if threading.current_thread() is threading.main_thread():   # the operator's stop
         for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: emulator.stop_event.set())
+            previous[sig] = signal.signal(sig, lambda *_: emulator.stop_event.set())
     samples = int(args.duration * plant.config.sample_rate) if args.duration else None
     print(f"plant on {interface}:{channel}: {plant.config.sample_rate:g} Hz, {args.pace}, load "
           f"{plant.config.load.start:g} -> {plant.config.load.end:g} N at {plant.config.load.rate:g} N/s",
@@ -68,6 +69,8 @@ def run_plant(args: argparse.Namespace) -> int:
     try:
         emulator.run(samples)
     finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
         bus.shutdown()
     d, angle = plant.deflection()
     print(f"stopped after {emulator.samples} samples ({plant.time:.2f} s plant time), "

@@ -59,7 +59,7 @@ class _RigBackend(CanBackend):
 
     def _open(self) -> None:
         super()._open()
-        if self._emulator._thread is None:
+        if not self._emulator.running:
             self._emulator.start()
 
 

@@ -35,7 +35,7 @@ def test_a_late_answer_is_applied_but_never_taken_for_the_next_sample_s_answer()
     emulator_bus = can.Bus(interface="virtual", channel="emulator-late")
     controller_bus = can.Bus(interface="virtual", channel="emulator-late")
     emulator = CanPlantEmulator(emulator_bus, make_plant(), GEOMETRY, pace="lockstep",
-                                answer_timeout=0.2,
+                                answer_timeout=2.0,
                                 on_step=lambda plant, v: steps.append(v.copy()))
     try:
         emulator.start(max_samples=3)
@@ -45,7 +45,7 @@ def test_a_late_answer_is_applied_but_never_taken_for_the_next_sample_s_answer()
         assert _next_strain_sequence(controller_bus) == 2
         _answer(controller_bus, 1, 105.0)                    # late, for sample 1
         _answer(controller_bus, 2, 60.0)
-        emulator._thread.join(timeout=5.0)
+        emulator.join(timeout=5.0)
     finally:
         emulator.stop()
         emulator_bus.shutdown()
