@@ -130,7 +130,8 @@ def plane_eigen(stiffness: np.ndarray, mass: np.ndarray, plane: Plane, count: in
     return lam, full
 
 
-def buckling_eigen(elastic: np.ndarray, geometric: np.ndarray, plane: Plane = "y"):
+def buckling_eigen(elastic: np.ndarray, geometric: np.ndarray,
+                   plane: Plane = "y") -> tuple[float, np.ndarray]:
     """Lowest buckling load det(Ke - Fx Kg) = 0 of one plane (eq. 12) and its mode.
 
     Solved as Kg phi = mu Ke phi (Ke is positive definite thanks to the supports) with
