@@ -6,10 +6,15 @@ import sys
 import threading
 from pathlib import Path
 
+# Ctrl-C as at a terminal. A process started from a background job of a non-interactive shell
+# (a CI runner may run the suite so) inherits SIGINT ignored, and Python then leaves it so.
+_AT_A_TERMINAL = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+                  "from beamctl.tools.cli import main; sys.exit(main())")
+
 
 def beamctl(*argv: str, cwd: Path, **kwargs) -> subprocess.Popen:
-    """``beamctl`` in its own process (stdout and stderr piped)."""
-    return subprocess.Popen([sys.executable, "-m", "beamctl.tools.cli", *argv], cwd=cwd,
+    """``beamctl`` in its own process (stdout and stderr piped), SIGINT handled as at a terminal."""
+    return subprocess.Popen([sys.executable, "-c", _AT_A_TERMINAL, *argv], cwd=cwd,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, **kwargs)
 
 
