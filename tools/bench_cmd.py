@@ -66,7 +66,7 @@ def timer_pacing(cycles: int = 5000) -> dict:
     table = load_table(default_table_path())
     config = controller_config({"pacing": "timer"})
     plant = Plant(build_model(table.model_parameters),
-                  plant_config({"sample_rate": table.design.sample_rate_hz,
+                  plant_config({"sample_rate_hz": table.design.sample_rate_hz,
                                 "load": {"start": 2000.0, "end": 2000.0}}))
     hal = SimBackend(plant, geometry(config.actuators)).open()
     try:
@@ -97,7 +97,7 @@ def can_latency(samples: int = 5000) -> dict:
     table = load_table(default_table_path())
     config = controller_config({"pacing": "sample"})
     plant = Plant(build_model(table.model_parameters),
-                  plant_config({"sample_rate": table.design.sample_rate_hz,
+                  plant_config({"sample_rate_hz": table.design.sample_rate_hz,
                                 "load": {"start": 2000.0, "end": 2000.0},
                                 "bow": {"amplitude": 5e-5, "angle_deg": 234.0}}))
     channel = f"bench-{time.monotonic_ns()}"

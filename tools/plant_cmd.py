@@ -62,8 +62,8 @@ def run_plant(args: argparse.Namespace) -> int:
     if threading.current_thread() is threading.main_thread():   # the operator's stop
         for sig in (signal.SIGINT, signal.SIGTERM):
             previous[sig] = signal.signal(sig, lambda *_: emulator.stop_event.set())
-    samples = int(args.duration * plant.config.sample_rate) if args.duration else None
-    print(f"plant on {interface}:{channel}: {plant.config.sample_rate:g} Hz, {args.pace}, load "
+    samples = int(args.duration * plant.config.sample_rate_hz) if args.duration else None
+    print(f"plant on {interface}:{channel}: {plant.config.sample_rate_hz:g} Hz, {args.pace}, load "
           f"{plant.config.load.start:g} -> {plant.config.load.end:g} N at {plant.config.load.rate:g} N/s",
           flush=True)
     try:

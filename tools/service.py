@@ -25,7 +25,7 @@ from beamctl.hal.config import HalConfig, hal_config
 from beamctl.models import build_model
 from beamctl.models.actuators import StackGeometry
 from beamctl.models.params import ModelParameters, parameters_from_dict
-from beamctl.models.plant import Plant, plant_config
+from beamctl.models.plant import Plant, PlantConfig, plant_config
 from beamctl.models.schema import ConfigError, merge, nonnegative, path, read_yaml, validate
 from beamctl.rt.allocation import geometry
 from beamctl.rt.config import ControllerConfig, controller_config
@@ -107,22 +107,33 @@ def plant_geometry(cfg: ServiceConfig) -> StackGeometry:
     return geometry(cfg.controller.actuators)
 
 
+def plant_parameters(cfg: ServiceConfig) -> ModelParameters:
+    """The simulated beam's parameters: ``plant.model`` over the controller's model (or that
+    model itself)."""
+    if not cfg.plant_model:
+        return cfg.model
+    try:
+        return parameters_from_dict(merge(cfg.model.to_dict(), cfg.plant_model), cfg.source)
+    except ConfigError as exc:
+        raise ConfigError(f"plant.model.{exc.key}", exc.value, exc.expected, cfg.source) from None
+
+
+def plant_settings(cfg: ServiceConfig, sample_rate_hz: float,
+                   overrides: dict[str, Any] | None = None) -> PlantConfig:
+    """The plant section (with ``overrides``) validated at ``sample_rate_hz``, the gain table's
+    rate: a plant sampled at any other rate is refused."""
+    pc = plant_config({"sample_rate_hz": sample_rate_hz, **cfg.plant, **(overrides or {})}, cfg.source,
+                      "plant.")
+    if pc.sample_rate_hz != sample_rate_hz:
+        raise ConfigError("plant.sample_rate_hz", pc.sample_rate_hz,
+                          f"the gain table's sample rate {sample_rate_hz:g} Hz", cfg.source)
+    return pc
+
+
 def build_plant(cfg: ServiceConfig, table: GainTable, overrides: dict[str, Any] | None = None) -> Plant:
     """The simulated beam: the plant section over the controller's model (or its own beam)."""
-    settings = {"sample_rate": table.design.sample_rate_hz, **cfg.plant, **(overrides or {})}
-    if settings["sample_rate"] != table.design.sample_rate_hz:
-        raise ConfigError("plant.sample_rate", settings["sample_rate"],
-                          f"the gain table's sample rate {table.design.sample_rate_hz:g} Hz", cfg.source)
-    pc = plant_config(settings, cfg.source, "plant.")
-    if cfg.plant_model:
-        try:
-            own = parameters_from_dict(merge(cfg.model.to_dict(), cfg.plant_model), cfg.source)
-        except ConfigError as exc:
-            raise ConfigError(f"plant.model.{exc.key}", exc.value, exc.expected, cfg.source) from None
-        model = build_model(own)
-    else:
-        model = build_model(cfg.model)
-    return Plant(model, pc)
+    pc = plant_settings(cfg, table.design.sample_rate_hz, overrides)
+    return Plant(build_model(plant_parameters(cfg)), pc)
 
 
 def build_hal(cfg: ServiceConfig, table: GainTable, plant: Plant | None = None) -> HalBase:

@@ -29,7 +29,7 @@ GEOMETRY = geometry(controller_config().actuators)
 
 
 def make_plant(**overrides) -> Plant:
-    settings = {"sample_rate": TABLE.design.sample_rate_hz, "load": {"start": 1500.0, "end": 1500.0},
+    settings = {"sample_rate_hz": TABLE.design.sample_rate_hz, "load": {"start": 1500.0, "end": 1500.0},
                 "bow": {"amplitude": 5e-5, "angle_deg": 234.0}, "noise": {"strain": 2e-7, "load": 1.0}}
     settings.update(overrides)
     return Plant(MODEL, plant_config(settings))
