@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from beamctl.models.schema import (
+from beamctl.config.schema import (
     ConfigError,
     boolean,
     choice,

@@ -34,6 +34,15 @@ from typing import Any
 import numpy as np
 import scipy.linalg as sla
 
+from beamctl.config.schema import (
+    integer,
+    merge,
+    nonnegative,
+    number,
+    positive,
+    read_yaml,
+    validate,
+)
 from beamctl.models.analysis import buckling_mode
 from beamctl.models.fe import (
     PHI_Y,
@@ -44,15 +53,6 @@ from beamctl.models.fe import (
     dof,
     plane_eigen,
     plane_indices,
-)
-from beamctl.models.schema import (
-    integer,
-    merge,
-    nonnegative,
-    number,
-    positive,
-    read_yaml,
-    validate,
 )
 
 PLANT_DEFAULTS: dict[str, Any] = {

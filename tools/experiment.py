@@ -28,12 +28,12 @@ from pathlib import Path
 
 import numpy as np
 
+from beamctl.config.schema import ConfigError, boolean, merge, positive, read_yaml, validate
 from beamctl.gains.build import build_table
 from beamctl.gains.table import GainTable, require_checked
 from beamctl.hal.sim import SimBackend
 from beamctl.models import build_model, critical_load, reduce
 from beamctl.models.analysis import lateral_displacements
-from beamctl.models.schema import ConfigError, boolean, merge, positive, read_yaml, validate
 from beamctl.rt.controller import Controller
 from beamctl.rt.loop import ControlLoop
 from beamctl.rt.safety import Fault

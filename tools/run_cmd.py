@@ -17,8 +17,8 @@ import sys
 import threading
 from pathlib import Path
 
+from beamctl.config.schema import ConfigError
 from beamctl.hal.base import HalError
-from beamctl.models.schema import ConfigError
 from beamctl.rt import realtime
 from beamctl.rt.controller import Controller
 from beamctl.rt.loop import ControlLoop

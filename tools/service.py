@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from beamctl.config.schema import ConfigError, merge, nonnegative, path, read_yaml, validate
 from beamctl.gains.defaults import default_table_path
 from beamctl.gains.table import GainTable, load_table
 from beamctl.hal.base import HalBase
@@ -26,7 +27,6 @@ from beamctl.models import build_model
 from beamctl.models.actuators import StackGeometry
 from beamctl.models.params import ModelParameters, parameters_from_dict
 from beamctl.models.plant import Plant, plant_config
-from beamctl.models.schema import ConfigError, merge, nonnegative, path, read_yaml, validate
 from beamctl.rt.allocation import geometry
 from beamctl.rt.config import ControllerConfig, controller_config
 

@@ -2,8 +2,8 @@
 
 import pytest
 
+from beamctl.config.schema import ConfigError
 from beamctl.hal.config import hal_config
-from beamctl.models.schema import ConfigError
 
 
 @pytest.mark.parametrize(("can", "key"), [

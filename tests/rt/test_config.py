@@ -2,7 +2,7 @@
 
 import pytest
 
-from beamctl.models.schema import ConfigError
+from beamctl.config.schema import ConfigError
 from beamctl.rt.config import MAX_AMPLIFIER_VOLTAGE, controller_config
 
 

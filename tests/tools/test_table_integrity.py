@@ -7,9 +7,9 @@ import json
 import pytest
 import yaml
 
+from beamctl.config.schema import read_yaml
 from beamctl.gains.defaults import default_table_path
 from beamctl.gains.table import GainTableError
-from beamctl.models.schema import read_yaml
 from beamctl.tools.cli import main
 from beamctl.tools.experiment import experiment_config, paper_table
 
