@@ -11,6 +11,7 @@ from beamctl.config.schema import (
     number_list,
     positive,
     read_yaml,
+    refuse_renamed,
     validate,
 )
 
@@ -84,3 +85,14 @@ def test_a_refusal_names_the_dotted_key_the_value_and_what_was_expected(data, ke
     assert err.value.key == f"plant.{key}", message
     assert message.startswith(f"scenario.yaml: plant.{key} = "), message
     assert expected_words in message and "\n" not in message, message
+
+
+def test_a_renamed_key_is_refused_naming_the_new_one_wherever_it_is_nested():
+    renamed = {"pace": "pace_s", "safety.ramp_time": "safety.ramp_time_s"}
+    refuse_renamed({"safety": {"ramp_time_s": 0.5}, "pace_s": 1.0}, renamed)   # the new names pass
+    for data, key in (({"pace": 1.0}, "controller.pace"),
+                      ({"safety": {"ramp_time": 0.5}}, "controller.safety.ramp_time")):
+        with pytest.raises(ConfigError) as err:
+            refuse_renamed(data, renamed, "lab.yaml", "controller.")
+        assert err.value.key == key and f"{key}_s in its place" in str(err.value), str(err.value)
+    refuse_renamed({"safety": 0.5}, renamed)   # not a mapping: left to validate, which names it

@@ -19,7 +19,7 @@ SIM = {"hal": {"backend": "sim"}, "controller": {"pacing": "sample"},
 
 def _service(tmp_path, table) -> str:
     f = tmp_path / "service.yaml"
-    f.write_text(yaml.safe_dump({**SIM, "gains": {"table": str(table)}, "run": {"duration": 0.02,
+    f.write_text(yaml.safe_dump({**SIM, "gains": {"table": str(table)}, "run": {"duration_s": 0.02,
                                  "telemetry": str(tmp_path / "run.btl")}}))
     return str(f)
 
