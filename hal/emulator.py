@@ -37,7 +37,6 @@ class CanPlantEmulator:
             raise ValueError(f"emulator pace {pace!r}: expected one of {PACES}")
         self.bus = bus
         self.plant = plant
-        self.geometry = geometry
         self.contract = contract or Contract()
         self.pace = pace
         self.answer_timeout_s = answer_timeout_s

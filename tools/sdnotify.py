@@ -29,9 +29,6 @@ class Notifier:
     def ready(self, status: str = "") -> None:
         self.notify("READY=1" + (f"\nSTATUS={status}" if status else ""))
 
-    def status(self, text: str) -> None:
-        self.notify(f"STATUS={text}")
-
     def stopping(self) -> None:
         self.notify("STOPPING=1")
 
