@@ -9,6 +9,7 @@ from importlib import metadata
 
 import numpy as np
 
+from beamctl.config.schema import ConfigError
 from beamctl.gains.defaults import DEFAULT_DESIGN, DEFAULT_SCHEDULE, PAPER_GRID_N
 from beamctl.gains.discrete import LoopCheck, check_load, velocity_filter
 from beamctl.gains.lqr import lqr_gain
@@ -16,7 +17,6 @@ from beamctl.gains.schedule import GainSchedule
 from beamctl.gains.table import DesignSettings, GainTable, ScheduleSettings
 from beamctl.models.fe import FEModel
 from beamctl.models.modal import reduce
-from beamctl.models.schema import ConfigError
 
 Progress = Callable[[int, int, str], None]
 

@@ -27,10 +27,10 @@ from typing import Any
 import numpy as np
 import yaml
 
+from beamctl.config.schema import ConfigError, read_yaml
 from beamctl.gains.discrete import LoopCheck
 from beamctl.gains.lqr import N_INPUTS, N_STATES, Weights
 from beamctl.models.params import ModelParameters, parameters_from_dict
-from beamctl.models.schema import ConfigError, read_yaml
 
 FORMAT = "beamctl-gain-table/2"
 # earlier formats, refused with the reason and what to run

@@ -41,6 +41,16 @@ from typing import Any
 import numpy as np
 import scipy.linalg as sla
 
+from beamctl.config.schema import (
+    ConfigError,
+    integer,
+    merge,
+    nonnegative,
+    number,
+    positive,
+    read_yaml,
+    validate,
+)
 from beamctl.models.analysis import buckling_mode
 from beamctl.models.fe import (
     PHI_Y,
@@ -53,16 +63,6 @@ from beamctl.models.fe import (
     plane_indices,
 )
 from beamctl.models.iochain import DelayedZOH, IOChain, delayed_zoh, io_chain, with_filters
-from beamctl.models.schema import (
-    ConfigError,
-    integer,
-    merge,
-    nonnegative,
-    number,
-    positive,
-    read_yaml,
-    validate,
-)
 
 PLANT_DEFAULTS: dict[str, Any] = {
     "sample_rate_hz": 2000.0,

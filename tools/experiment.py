@@ -32,13 +32,13 @@ from pathlib import Path
 
 import numpy as np
 
+from beamctl.config.schema import ConfigError, boolean, merge, positive, read_yaml, validate
 from beamctl.gains.build import build_table
 from beamctl.gains.table import GainTable, require_checked
 from beamctl.hal.sim import SimBackend
 from beamctl.models import build_model, critical_load, reduce
 from beamctl.models.analysis import lateral_displacements
 from beamctl.models.plant import plant_config
-from beamctl.models.schema import ConfigError, boolean, merge, positive, read_yaml, validate
 from beamctl.rt.controller import Controller
 from beamctl.rt.loop import ControlLoop
 from beamctl.rt.safety import Fault
@@ -300,7 +300,7 @@ def run_experiment(cfg: ServiceConfig, settings: dict, tables: dict[str, GainTab
     summary["scenario"] = {"source": cfg.source, "bow_amplitude_mm": 1e3 * cfg.plant["bow"]["amplitude"],
                            "bow_angle_deg": cfg.plant["bow"]["angle_deg"],
                            "force_constant_N_per_V": cfg.controller.actuators.force_constant,
-                           "rig_force_constant_N_per_V": plant_geometry(cfg).force_constant,
+                           "rig_force_constant_N_per_V": plant_geometry(cfg).force_constant_n_per_v,
                            "plant_model": cfg.plant_model,
                            "load_rate_N_per_s": cfg.plant["load"]["rate"],
                            "deflection_limit_mm": 1e3 * settings["deflection_limit"]}

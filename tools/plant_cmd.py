@@ -8,11 +8,11 @@ import signal
 import sys
 import threading
 
+from beamctl.config.schema import ConfigError
 from beamctl.hal.base import HalConfigurationError
 from beamctl.hal.budget import LIMIT, bus_budget
 from beamctl.hal.config import check_bitrates
 from beamctl.hal.dbc import Contract
-from beamctl.models.schema import ConfigError
 from beamctl.tools.argtypes import positive, seconds
 from beamctl.tools.service import build_plant, load_gain_table, load_service_config, plant_geometry
 

@@ -79,7 +79,7 @@ def test_the_loop_the_check_analyses_is_the_loop_the_controller_runs(paper_model
     ad, bd, c = discrete_fe_plane(paper_model, load, 1.0 / rate, "y")
     a_cl = closed_loop_matrix(ad, bd, c, GainSchedule(table).gain_at(load), table.c0_phi_inv, filt, "y")
 
-    controller = Controller(table, controller_config({"start_ramp_time": 0.0}))
+    controller = Controller(table, controller_config({"start_ramp_time_s": 0.0}))
     rng = np.random.default_rng(7)
     x = 1e-9 * rng.standard_normal(ad.shape[0])         # a few micro-strain at the gauges
     sample = Sample()

@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from beamctl.models import ConfigError, critical_load, eigenfrequencies
+from beamctl.config.schema import ConfigError
+from beamctl.models import critical_load, eigenfrequencies
 from beamctl.models.plant import LoadRamp, Plant, load_plant_config, plant_config
 
 ZERO = np.zeros(4)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import scipy.signal as sig
 
-from beamctl.models import ConfigError
+from beamctl.config.schema import ConfigError
 from beamctl.models.iochain import analog_filter
 from beamctl.models.plant import Plant, load_plant_config, plant_config
 

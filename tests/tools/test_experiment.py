@@ -6,7 +6,7 @@ import signal
 
 import pytest
 
-from beamctl.models.schema import ConfigError
+from beamctl.config.schema import ConfigError
 from beamctl.rt.controller import COL
 from beamctl.rt.safety import State
 from beamctl.rt.telemetry import read_telemetry
