@@ -39,6 +39,7 @@ from beamctl.models.modal import orient_modes
 
 DISPLACEMENT_SCALE = 1e-6
 INTEGRAL_SCALE = 1e-9
+FILTER_SCALE = 1e-6        # anti-alias filter states, in strain
 
 
 @dataclass(frozen=True)
@@ -129,7 +130,12 @@ class SampledDesignModel:
 
 
 def sampled_model(pm: PlaneModel, axial_load_n: float, period_s: float, chain: IOChain) -> SampledDesignModel:
-    """The design model with the delay as buffer states (filters of the chain included)."""
+    """The design model with the delay as buffer states and the anti-alias filter's states after
+    the modal states (the static residual reaches the strains unfiltered: a small error, the
+    residual being nearly static). A reconstruction filter is not modelled: refused."""
+    if chain.reconstruction is not None:
+        raise ValueError("the LQG design does not model a reconstruction filter; declare only the "
+                         "delay and the anti-alias filter")
     a, b, c = pm.continuous(axial_load_n)
     a, b, c, _ = with_filters(a, b, c, chain, n_control=2)
     zoh = delayed_zoh(a, b, period_s, chain.delay_samples)
@@ -162,11 +168,13 @@ def sampled_model(pm: PlaneModel, axial_load_n: float, period_s: float, chain: I
     return SampledDesignModel(phi=phi, gamma=gamma, cs=cs, noise_in=noise_in, n_modal=n)
 
 
-def _scales(pm: PlaneModel, n_states: int) -> np.ndarray:
+def _scales(pm: PlaneModel, n_states: int, n_modal: int) -> np.ndarray:
+    """Riccati scaling of the state [q, dq/dt, anti-alias filter (strain), buffer (N)]."""
     m = len(pm.omega)
     s = np.ones(n_states)
     s[:m] = DISPLACEMENT_SCALE
     s[m:2 * m] = DISPLACEMENT_SCALE * pm.omega
+    s[2 * m:n_modal] = FILTER_SCALE
     return s
 
 
@@ -189,7 +197,7 @@ def plane_design(pm: PlaneModel, axial_load_n: float, period_s: float, chain: IO
     q[m:m + 2] = settings.q_velocity
     q[n:n + 2] = settings.q_integral
     # cost per sample = T x (continuous cost), the same for Q and R: their ratio is the paper's
-    scale = np.concatenate([_scales(pm, n), np.full(2, INTEGRAL_SCALE)])
+    scale = np.concatenate([_scales(pm, n, sm.n_modal), np.full(2, INTEGRAL_SCALE)])
     sp = big_phi / scale[:, None] * scale[None, :]
     sg = big_gamma / scale[:, None]
     sq = np.diag(q * scale**2)
@@ -199,7 +207,7 @@ def plane_design(pm: PlaneModel, axial_load_n: float, period_s: float, chain: IO
     k = k_scaled / scale[None, :]
     kx, kxi = k[:, :n], k[:, n:]
     # Kalman filter on s (the buffer is known exactly: no noise there)
-    sc = _scales(pm, n)
+    sc = _scales(pm, n, sm.n_modal)
     w = np.zeros((n, n))
     w += settings.force_noise_n**2 * sm.noise_in @ sm.noise_in.T
     if settings.high_mode_noise > 0 and m > 2:
