@@ -17,8 +17,6 @@ what telemetry stores.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from beamctl.gains.discrete import velocity_filter
@@ -27,7 +25,7 @@ from beamctl.gains.table import GainTable
 from beamctl.hal.base import Sample
 from beamctl.rt.allocation import Allocator
 from beamctl.rt.config import ControllerConfig
-from beamctl.rt.safety import Fault, State, Supervisor, TransitionError
+from beamctl.rt.safety import Fault, Safety, State, TransitionError
 
 RECORD_COLUMNS = (
     ["time_s", "sequence", "state", "fault", "flags"]
@@ -77,7 +75,6 @@ class Controller:
         self.period = 1.0 / self.sample_rate_hz
         filt = velocity_filter(table.design.velocity_cutoff_hz, self.sample_rate_hz)
         self.filter = filt
-        self.supervisor = Supervisor()
         self.schedule = GainSchedule(table)
         self.allocator = Allocator(config.actuators)
 
@@ -108,23 +105,15 @@ class Controller:
         self._a_gain, self._a_slope = self._a[:4], self._a[4:]
         self._du = np.zeros(4)
         self._target = np.zeros(6)                            # voltages from the allocation
-        self._ramp_from = np.zeros(6)
         self._bias = np.full(6, config.actuators.bias_voltage)
 
-        params = table.model_parameters
-        self.strain_limit = (config.safety.strain_limit_fraction * params.beam.proportional_limit
-                             / params.beam.youngs_modulus)
-        self._load_low = max(config.safety.load_range[0], -math.inf)
-        self._load_high = config.safety.load_range[1]
+        beam = table.model_parameters.beam
+        self.safety = Safety(config.safety, beam.proportional_limit / beam.youngs_modulus,
+                             config.actuators.bias_voltage, self.sample_rate_hz, self.voltages)
+        self.supervisor = self.safety.supervisor
         self._anti_windup = config.anti_windup
         self._start_samples = max(1, round(config.start_ramp_time * self.sample_rate_hz))
-        self._ramp_samples = max(1, round(config.safety.ramp_time * self.sample_rate_hz))
-        self._saturation_limit = max(1, round(config.safety.saturation_time * self.sample_rate_hz))
-        self._stale_limit = config.safety.stale_periods
         self._steps_since_start = 0
-        self._ramp_step = 0
-        self._saturated_samples = 0
-        self._missing = 0
         self.voltages[:] = self._bias
 
     # -- lifecycle -----------------------------------------------------------------------------
@@ -149,9 +138,7 @@ class Controller:
         self.xi[:] = 0.0
         self.qdot[:] = 0.0
         self.voltages[:] = self._bias
-        self._ramp_step = 0
-        self._saturated_samples = 0
-        self._missing = 0
+        self.safety.clear()
         self.allocator.scale_a = self.allocator.scale_b = 1.0
         if sample is not None:
             self.schedule.reset(sample.axial_load)
@@ -173,20 +160,11 @@ class Controller:
 
     def request_stop(self) -> None:
         """Ramp to bias and stop (SIGINT/SIGTERM, end of run)."""
-        if self.supervisor.state in (State.RUNNING, State.ARMED, State.INIT):
-            self._begin_ramp()
-        self.supervisor.request_stop()
+        self.safety.request_stop()
 
     def fault(self, fault: Fault, detail: str = "") -> None:
         """Latch ``fault`` (first one wins) and ramp the voltages to bias."""
-        was = self.supervisor.state
-        if self.supervisor.trip(fault, detail, float(self.record[I_TIME])):
-            if was != State.STOPPING:
-                self._begin_ramp()
-
-    def _begin_ramp(self) -> None:
-        self._ramp_from[:] = self.voltages
-        self._ramp_step = 0
+        self.safety.trip(fault, detail)
 
     # -- the step ---------------------------------------------------------------------------------
     def step(self, sample: Sample | None) -> np.ndarray:
@@ -194,19 +172,18 @@ class Controller:
         voltages to write (the controller's own array)."""
         r = self.record
         r[I_FLAGS] = 0.0
+        safety = self.safety
         if sample is None:
-            self._missing += 1
             r[I_FLAGS] = FLAG_NO_NEW_SAMPLE
-            if self._missing >= self._stale_limit and self.supervisor.state == State.RUNNING:
-                self.fault(Fault.STALE_INPUT, f"{self._missing} periods without a sample")
+            safety.sample_missing()
         else:
-            self._missing = 0
+            safety.sample_arrived(sample.timestamp)
             r[I_TIME] = sample.timestamp
             r[I_SEQUENCE] = sample.sequence
             self.strains[:] = sample.strains
             r[I_LOAD] = sample.axial_load
             if self.supervisor.state == State.RUNNING:
-                self._check_inputs(sample)
+                safety.check_inputs(self.strains, sample.axial_load)
         state = self.supervisor.state
         if state == State.RUNNING:
             if sample is not None:      # no new sample: the voltages hold, the law waits
@@ -219,24 +196,6 @@ class Controller:
         r[I_STATE] = self.supervisor.state
         r[I_FAULT] = self.supervisor.fault
         return self.voltages
-
-    def _check_inputs(self, sample: Sample) -> None:
-        limit = self.strain_limit
-        for i in range(4):
-            e = self.strains[i]
-            if not abs(e) <= limit:
-                if e != e or abs(e) == math.inf:
-                    self.fault(Fault.STRAIN_NOT_FINITE, f"strain {i} = {e}")
-                else:
-                    self.fault(Fault.STRAIN_OUT_OF_RANGE, f"strain {i} = {e:.3g}, limit {limit:.3g}")
-                return
-        load = sample.axial_load
-        if not self._load_low <= load <= self._load_high:
-            if load != load or abs(load) == math.inf:
-                self.fault(Fault.LOAD_NOT_FINITE, f"load = {load}")
-            else:
-                self.fault(Fault.LOAD_OUT_OF_SENSOR_RANGE,
-                           f"load = {load:.1f} N, range [{self._load_low:g}, {self._load_high:g}] N")
 
     def _control(self) -> None:
         r = self.record
@@ -297,28 +256,12 @@ class Controller:
             self.voltages += self._bias
         else:
             self.voltages[:] = self._target
-        if alloc.scale_a < 1.0 or alloc.scale_b < 1.0:
-            self._saturated_samples += 1
-            if self._saturated_samples >= self._saturation_limit:
-                self.fault(Fault.PERSISTENT_SATURATION,
-                           f"saturated for {self._saturated_samples} samples")
-        else:
-            self._saturated_samples = 0
+        self.safety.saturation(alloc.scale_a < 1.0 or alloc.scale_b < 1.0)
 
     def _ramp(self) -> None:
-        """Linear ramp from the voltages at the fault/stop to bias; then hold bias."""
         self.record[I_FLAGS] += FLAG_RAMPING_TO_BIAS
-        if self._ramp_step < self._ramp_samples:
-            self._ramp_step += 1
-            remaining = 1.0 - self._ramp_step / self._ramp_samples
-            np.subtract(self._ramp_from, self._bias, out=self.voltages)
-            self.voltages *= remaining
-            self.voltages += self._bias
-        else:
-            self.voltages[:] = self._bias
-            if self.supervisor.state == State.STOPPING:
-                self.supervisor.stopped()
+        self.safety.ramp_step()
 
     @property
     def at_bias(self) -> bool:
-        return bool(np.all(self.voltages == self._bias))
+        return self.safety.at_bias
