@@ -10,16 +10,16 @@ from importlib import metadata
 
 import numpy as np
 
-from beamctl.gains.closedloop import closed_loop_matrix, sampled_fe_plane
-from beamctl.gains.compensator import PLANE_CHANNELS, Compensator, CompensatorPoint, from_integral_lqr
+from beamctl.config.schema import ConfigError
+from beamctl.gains.compensator import Compensator, CompensatorPoint, from_integral_lqr
 from beamctl.gains.defaults import DEFAULT_DESIGN, DEFAULT_SCHEDULE, PAPER_GRID_N
 from beamctl.gains.discrete import LoopCheck, pole_summary, velocity_filter
 from beamctl.gains.lqr import lqr_gain
+from beamctl.gains.rig import RigPlane
 from beamctl.gains.schedule import GainSchedule
 from beamctl.gains.table import DesignSettings, GainTable, ScheduleSettings
 from beamctl.models.fe import FEModel
 from beamctl.models.modal import reduce
-from beamctl.models.schema import ConfigError
 
 Progress = Callable[[int, int, str], None]
 
@@ -66,20 +66,25 @@ def check_plan(table: GainTable) -> list[tuple[float, float | None, CompensatorP
             for load, i in _plan_loads(table.loads_n, table.schedule)]
 
 
+def nominal_rig(model: FEModel, table: GainTable, plane: str = "y") -> RigPlane:
+    """The rig the design assumes: the model's FE plane with the I/O chain the design declares
+    (``design.io``) at the design's rate and stack force per volt."""
+    return RigPlane(model, table.design.io, table.design.sample_rate_hz, plane=plane)
+
+
 def check_load(model: FEModel, axial_load: float, point: CompensatorPoint, table: GainTable,
-               plane: str = "y") -> LoopCheck:
+               plane: str = "y", rig: RigPlane | None = None) -> LoopCheck:
     """The discrete closed loop at ``axial_load``: the full FE model of one bending plane
-    (140 states) with the I/O chain the design declares (``design.io``), sampled with the
-    delayed zero-order hold at the table's rate, closed by the compensator matrices ``point``.
+    (140 states) with the I/O chain the design declares, sampled with the delayed zero-order
+    hold at the table's rate (``nominal_rig``, or ``rig``), closed by the compensator matrices
+    ``point`` (gains.closedloop).
 
     The two planes of the circular section have the same plant spectrum and, by design, the
     same compensator block (tested): checking one plane checks both.
     """
     comp = table.compensator
-    plant, c = sampled_fe_plane(model, axial_load, table.design.io, comp.period_s, plane)
-    io = list(PLANE_CHANNELS[plane])
-    matrix = closed_loop_matrix(plant, c, point.plane(comp.plane_states[plane], plane),
-                                comp.h[np.ix_(io, io)], comp.period_s)
+    rig = rig or nominal_rig(model, table, plane)
+    matrix = rig.loop_matrix(axial_load, point, comp.h, comp.plane_states[rig.plane], comp.period_s)
     radius, damping = pole_summary(np.linalg.eigvals(matrix), table.design.sample_rate_hz)
     return LoopCheck(load_n=float(axial_load), spectral_radius=radius, min_damping=damping)
 
@@ -89,9 +94,10 @@ def closed_loop_checks(model: FEModel, table: GainTable, progress: Progress | No
     """The closed-loop check of ``table`` at every load of ``check_plan``."""
     plan = check_plan(table)
     total = total if total is not None else len(plan)
+    rig = nominal_rig(model, table)
     results = []
     for i, (load, gain_load, point) in enumerate(plan):
-        results.append(replace(check_load(model, load, point, table), gain_load_n=gain_load))
+        results.append(replace(check_load(model, load, point, table, rig=rig), gain_load_n=gain_load))
         if progress:
             progress(done + i + 1, total, f"check {load:7.1f} N")
     return tuple(results)

@@ -20,9 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from beamctl.gains.compensator import CompensatorPoint
-from beamctl.models.analysis import PLANE_IO, state_space
-from beamctl.models.fe import FEModel, plane_indices
-from beamctl.models.iochain import DelayedZOH, IOChain, delayed_zoh, with_filters
+from beamctl.models.iochain import DelayedZOH
 
 
 def closed_loop_matrix(plant: DelayedZOH, c: np.ndarray, comp: CompensatorPoint, h: np.ndarray,
@@ -73,24 +71,3 @@ def spectral_radius(matrix: np.ndarray) -> tuple[float, np.ndarray]:
     poles = np.linalg.eigvals(matrix)
     return float(np.max(np.abs(poles))), poles
 
-
-def fe_plane(model: FEModel, axial_load: float,
-             plane: str = "y") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The full FE model of one bending plane, continuous: (A, B, C) with the inputs
-    (Fa,A, Fa,B) and the outputs (eps_1, eps_2) of that plane."""
-    a, b, c = state_space(model, axial_load)
-    idx = plane_indices(model.n_nodes, plane)
-    states = np.concatenate([idx, model.n_dof + idx])
-    io = list(PLANE_IO[plane])
-    return a[np.ix_(states, states)], b[np.ix_(states, io)], c[np.ix_(io, states)]
-
-
-def sampled_fe_plane(model: FEModel, axial_load: float, chain: IOChain, period_s: float,
-                     plane: str = "y") -> tuple[DelayedZOH, np.ndarray]:
-    """One plane of the FE model seen through the I/O chain ``chain`` (reconstruction filter on
-    the forces, anti-aliasing filter on the strains, transport delay), sampled with the delayed
-    zero-order hold at ``period_s``: the plant and its strain output C for
-    ``closed_loop_matrix`` (the plant is strictly proper, so the strains have no feedthrough)."""
-    a, b, c = fe_plane(model, axial_load, plane)
-    a, b, c, _ = with_filters(a, b, c, chain, n_control=2)
-    return delayed_zoh(a, b, period_s, chain.delay_samples), c

@@ -34,12 +34,12 @@ from typing import Any
 import numpy as np
 import yaml
 
+from beamctl.config.schema import ConfigError, read_yaml
 from beamctl.gains.compensator import MATRICES, Compensator
 from beamctl.gains.discrete import LoopCheck
 from beamctl.gains.lqr import N_INPUTS, N_STATES, Weights
 from beamctl.models.iochain import IOChain, io_chain
 from beamctl.models.params import ModelParameters, parameters_from_dict
-from beamctl.models.schema import ConfigError, read_yaml
 
 FORMAT = "beamctl-gain-table/3"
 # earlier formats, refused with the reason and what to run

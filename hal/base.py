@@ -3,7 +3,7 @@
 In the style of python-can's ``BusABC``: the shared behaviour (open/close as a context
 manager, time-outs, staleness, the typed errors) is written once here; a backend supplies a
 narrow set of hooks (``_open``, ``_read``, ``_write``, ``_close``). Backends are chosen by
-name and imported lazily (``hal.open_backend``), so the simulated plant never needs a CAN
+name and imported lazily (``hal.create``), so the simulated plant never needs a CAN
 library, and nothing ever falls back from the DAQ to the plant.
 
 One ``read()`` returns one sample: time stamp, sequence number, the four strains
@@ -14,7 +14,6 @@ voltages (a1, a2, a3 at support A, b1, b2, b3 at support B).
 from __future__ import annotations
 
 import abc
-import time
 
 import numpy as np
 
@@ -52,14 +51,10 @@ class Sample:
         self.axial_load = 0.0         # N, load cell
 
 
-N_STRAINS = 4
-N_VOLTAGES = 6
-
-
 class HalBase(abc.ABC):
     """Shared behaviour of every backend. Use as a context manager::
 
-        with open_backend(config) as hal:
+        with create(name, **settings) as hal:
             sample = hal.read(timeout=0.01)
             hal.write(voltages)
     """
@@ -70,7 +65,7 @@ class HalBase(abc.ABC):
         if not sample_rate_hz > 0:
             raise HalConfigurationError(f"sample rate must be positive, got {sample_rate_hz!r}")
         self.sample_rate_hz = float(sample_rate_hz)
-        self.sample_period = 1.0 / self.sample_rate_hz
+        self.sample_period_s = 1.0 / self.sample_rate_hz
         self.is_open = False
         self.reads = 0
         self.writes = 0
@@ -117,7 +112,7 @@ class HalBase(abc.ABC):
         nothing arrives within ``timeout`` seconds (None: ten sample periods)."""
         if not self.is_open:
             raise HalConnectionLost(f"{self.name}: read on a closed backend")
-        wait = 10 * self.sample_period if timeout is None else timeout
+        wait = 10 * self.sample_period_s if timeout is None else timeout
         if not self._read(self._sample, wait):
             raise HalStaleData(f"{self.name}: no sample within {wait * 1e3:.1f} ms")
         self.reads += 1
@@ -138,7 +133,3 @@ class HalBase(abc.ABC):
     def status(self) -> dict:
         """Counters for reports (backends add their own)."""
         return {"backend": self.name, "reads": self.reads, "writes": self.writes}
-
-    @staticmethod
-    def now() -> float:
-        return time.monotonic()

@@ -27,14 +27,15 @@ def classic_frame_bits(data_bytes: int, extended: bool = False) -> int:
     return fixed + 8 * data_bytes + (stuffable - 1) // 4
 
 
-def fd_frame_time(data_bytes: int, nominal_bitrate: float, data_bitrate: float,
+def fd_frame_time(data_bytes: int, nominal_bitrate_bit_s: float, data_bitrate_bit_s: float,
                   extended: bool = False) -> float:
+    """Seconds one CAN FD frame (bit-rate switch) takes on the bus."""
     arbitration = (37 if extended else 17)
     nominal_bits = arbitration + (arbitration - 1) // 4 + 13
     crc = 17 if data_bytes <= 16 else 21
     dynamic = 1 + 4 + 8 * data_bytes
     data_bits = dynamic + (dynamic - 1) // 4 + 4 + crc + math.ceil(crc / 4)
-    return nominal_bits / nominal_bitrate + data_bits / data_bitrate
+    return nominal_bits / nominal_bitrate_bit_s + data_bits / data_bitrate_bit_s
 
 
 @dataclass(frozen=True)
@@ -46,33 +47,34 @@ class Budget:
     description: str
 
 
-def bus_budget(contract: Contract, sample_rate_hz: float, bitrate: float, fd: bool = False,
-               data_bitrate: float | None = None) -> Budget:
+def bus_budget(contract: Contract, sample_rate_hz: float, bitrate_bit_s: float, fd: bool = False,
+               data_bitrate_bit_s: float | None = None) -> Budget:
     """Bus load of all four messages at ``sample_rate_hz``."""
+    data_rate = data_bitrate_bit_s or bitrate_bit_s
     per_sample = {}
     for codec in contract.codecs.values():
         if fd:
-            seconds = fd_frame_time(codec.length, bitrate, data_bitrate or bitrate, codec.is_extended)
+            seconds = fd_frame_time(codec.length, bitrate_bit_s, data_rate, codec.is_extended)
         else:
-            seconds = classic_frame_bits(codec.length, codec.is_extended) / bitrate
+            seconds = classic_frame_bits(codec.length, codec.is_extended) / bitrate_bit_s
         per_sample[codec.name] = seconds / codec.divisor
     total = sum(per_sample.values())
-    kind = f"CAN FD {bitrate / 1e3:g}/{(data_bitrate or bitrate) / 1e3:g} kbit/s" if fd \
-        else f"classic CAN {bitrate / 1e3:g} kbit/s"
+    kind = f"CAN FD {bitrate_bit_s / 1e3:g}/{data_rate / 1e3:g} kbit/s" if fd \
+        else f"classic CAN {bitrate_bit_s / 1e3:g} kbit/s"
     return Budget(sample_rate_hz=sample_rate_hz, load=total * sample_rate_hz,
                   per_message={k: v * sample_rate_hz for k, v in per_sample.items()},
                   max_sample_rate_hz=float(math.floor(LIMIT / total)), description=kind)
 
 
-def check_budget(contract: Contract, sample_rate_hz: float, bitrate: float, fd: bool = False,
-                 data_bitrate: float | None = None) -> Budget:
+def check_budget(contract: Contract, sample_rate_hz: float, bitrate_bit_s: float, fd: bool = False,
+                 data_bitrate_bit_s: float | None = None) -> Budget:
     """The budget, or HalConfigurationError when it exceeds 80 %, saying what would fit."""
-    b = bus_budget(contract, sample_rate_hz, bitrate, fd, data_bitrate)
+    b = bus_budget(contract, sample_rate_hz, bitrate_bit_s, fd, data_bitrate_bit_s)
     if b.load > LIMIT:
         hint = f"at most {b.max_sample_rate_hz:.0f} Hz fits on {b.description}"
         if not fd:
-            fd_budget = bus_budget(contract, sample_rate_hz, bitrate, True, 4 * bitrate)
-            hint += (f"; CAN FD with a {4 * bitrate / 1e6:g} Mbit/s data phase would carry "
+            fd_budget = bus_budget(contract, sample_rate_hz, bitrate_bit_s, True, 4 * bitrate_bit_s)
+            hint += (f"; CAN FD with a {4 * bitrate_bit_s / 1e6:g} Mbit/s data phase would carry "
                      f"{fd_budget.max_sample_rate_hz:.0f} Hz ({100 * fd_budget.load:.0f} % at this rate)")
         raise HalConfigurationError(
             f"bus load {100 * b.load:.1f} % at {sample_rate_hz:g} Hz on {b.description} exceeds "

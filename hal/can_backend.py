@@ -32,15 +32,15 @@ RATE_WINDOW_S = 0.2            # seconds of strain frames over which the DAQ's r
 class CanBackend(HalBase):
     name = "can"
 
-    def __init__(self, sample_rate_hz: float, interface: str, channel: str, bitrate: float = 1_000_000,
-                 fd: bool = False, data_bitrate: float | None = None, dbc: str | Path | None = None,
+    def __init__(self, sample_rate_hz: float, interface: str, channel: str, bitrate_bit_s: float = 1_000_000,
+                 fd: bool = False, data_bitrate_bit_s: float | None = None, dbc: str | Path | None = None,
                  record: str | Path | None = None, bus_options: dict | None = None,
                  rate_tolerance: float = 0.05) -> None:
         super().__init__(sample_rate_hz)
         self.contract = Contract(dbc)
-        self.budget = check_budget(self.contract, sample_rate_hz, bitrate, fd, data_bitrate)
+        self.budget = check_budget(self.contract, sample_rate_hz, bitrate_bit_s, fd, data_bitrate_bit_s)
         self.interface, self.channel = interface, channel
-        self.bitrate, self.fd, self.data_bitrate = bitrate, fd, data_bitrate
+        self.bitrate_bit_s, self.fd, self.data_bitrate_bit_s = bitrate_bit_s, fd, data_bitrate_bit_s
         self.record = Path(record) if record else None
         if self.record and self.record.suffix not in (".asc", ".blf"):
             raise HalConfigurationError(f"recording {self.record}: expected a .asc or .blf file name")
@@ -87,11 +87,11 @@ class CanBackend(HalBase):
         self._reset_counters()
         options = dict(self.bus_options)
         if self.interface != "socketcan":   # socketcan takes its bit rate from `ip link`
-            options.setdefault("bitrate", int(self.bitrate))
+            options.setdefault("bitrate", int(self.bitrate_bit_s))
         if self.fd:
             options["fd"] = True
-            if self.data_bitrate:
-                options.setdefault("data_bitrate", int(self.data_bitrate))
+            if self.data_bitrate_bit_s:
+                options.setdefault("data_bitrate", int(self.data_bitrate_bit_s))
         try:
             self.bus = can.Bus(interface=self.interface, channel=self.channel, **options)
         except (can.CanError, OSError, ValueError, ImportError) as exc:

@@ -56,7 +56,6 @@ class FrameCodec:
         self.frame_id = message.frame_id
         self.length = message.length
         self.is_extended = message.is_extended_frame
-        self.is_fd = bool(getattr(message, "is_fd", False))
         attrs = message.dbc.attributes if message.dbc else {}
         self.divisor = int(attrs["SampleDivisor"].value) if "SampleDivisor" in attrs else 1
         self.signals: list[SignalCodec] = []
@@ -126,4 +125,3 @@ class Contract:
         self.load = self.codecs["load"]
         self.voltages = self.codecs["voltages"]
         self.status = self.codecs["status"]
-        self.by_id = {c.frame_id: c for c in self.codecs.values()}

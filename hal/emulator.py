@@ -31,18 +31,17 @@ WAIT_SLICE_S = 0.05        # a lockstep wait looks at the stop request this ofte
 class CanPlantEmulator:
     def __init__(self, bus: can.BusABC, plant: Plant, geometry: StackGeometry,
                  contract: Contract | None = None, pace: str = "wallclock",
-                 answer_timeout: float = 0.05, latency_samples: int = 0,
+                 answer_timeout_s: float = 0.05, latency_samples: int = 0,
                  on_step: Callable[[Plant, np.ndarray], None] | None = None) -> None:
         if pace not in PACES:
             raise ValueError(f"emulator pace {pace!r}: expected one of {PACES}")
         self.bus = bus
         self.plant = plant
-        self.geometry = geometry
         self.contract = contract or Contract()
         self.pace = pace
-        self.answer_timeout = answer_timeout
+        self.answer_timeout_s = answer_timeout_s
         self.on_step = on_step
-        self.period = plant.config.sample_period
+        self.period_s = plant.config.sample_period
         self._force_matrix = geometry.force_matrix()
         self._voltages = np.full(6, geometry.bias_voltage)
         self._bias = np.full(6, geometry.bias_voltage)
@@ -59,7 +58,7 @@ class CanPlantEmulator:
         self.status_frames = 0
         self.last_state = None
         # sensor frame sent -> voltage frame received, seconds (lockstep pace only)
-        self.latencies = np.full(latency_samples, np.nan)
+        self.latencies_s = np.full(latency_samples, np.nan)
         self.stop_event = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -107,10 +106,10 @@ class CanPlantEmulator:
 
     def _await_answer(self) -> bool:
         """Lockstep: take frames until the voltage frame answering the sample just sent (True),
-        or until ``answer_timeout`` or a stop request (False). A late answer to an earlier
+        or until ``answer_timeout_s`` or a stop request (False). A late answer to an earlier
         sample is applied (the stacks take the latest voltages) but does not end the wait."""
         expected = self.samples & 0xF
-        deadline = time.monotonic() + self.answer_timeout
+        deadline = time.monotonic() + self.answer_timeout_s
         while not self.stop_event.is_set():
             remaining = deadline - time.monotonic()
             if remaining <= 0:
@@ -129,10 +128,10 @@ class CanPlantEmulator:
             sent = time.perf_counter()
             self._send_sample()
             if self.pace == "lockstep":
-                if self._await_answer() and self.samples < len(self.latencies):
-                    self.latencies[self.samples] = time.perf_counter() - sent
+                if self._await_answer() and self.samples < len(self.latencies_s):
+                    self.latencies_s[self.samples] = time.perf_counter() - sent
             else:
-                next_time = start + (self.samples + 1) * self.period
+                next_time = start + (self.samples + 1) * self.period_s
                 while True:
                     remaining = next_time - time.monotonic()
                     if remaining <= 0:

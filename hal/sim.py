@@ -23,7 +23,7 @@ class SimBackend(HalBase):
     name = "sim"
 
     def __init__(self, plant: Plant, geometry: StackGeometry, pace: str = "simulated") -> None:
-        super().__init__(plant.config.sample_rate)
+        super().__init__(plant.config.sample_rate_hz)
         if pace not in PACES:
             raise HalConfigurationError(f"sim pace {pace!r}: expected one of {PACES}")
         self.plant = plant

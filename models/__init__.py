@@ -13,10 +13,8 @@ from beamctl.models.analysis import (
 from beamctl.models.fe import FEModel, build_model
 from beamctl.models.modal import ModalModel, reduce
 from beamctl.models.params import ModelParameters, load_parameters, parameters_from_dict
-from beamctl.models.schema import ConfigError
 
 __all__ = [
-    "ConfigError",
     "FEModel",
     "ModalModel",
     "ModelParameters",

@@ -15,7 +15,7 @@ STACKS = 3
 
 @dataclass(frozen=True)
 class StackGeometry:
-    force_constant: float                 # N/V
+    force_constant_n_per_v: float
     bias_voltage: float                   # V
     orientation_deg: tuple[float, float]  # stack 1 at supports A and B, from +y towards +z
 
@@ -26,7 +26,8 @@ class StackGeometry:
 
     def forces(self, voltages: np.ndarray) -> np.ndarray:
         """Lateral forces (Fay,A, Faz,A, Fay,B, Faz,B) in N of six stack voltages."""
-        f = self.force_constant * (np.asarray(voltages, dtype=float).reshape(2, STACKS) - self.bias_voltage)
+        volts = np.asarray(voltages, dtype=float).reshape(2, STACKS) - self.bias_voltage
+        f = self.force_constant_n_per_v * volts
         return np.einsum("si,sid->sd", f, self.axes()).reshape(4)
 
     def force_matrix(self) -> np.ndarray:
@@ -34,5 +35,5 @@ class StackGeometry:
         m = np.zeros((4, 6))
         ax = self.axes()
         for s in range(2):
-            m[2 * s:2 * s + 2, 3 * s:3 * s + 3] = self.force_constant * ax[s].T
+            m[2 * s:2 * s + 2, 3 * s:3 * s + 3] = self.force_constant_n_per_v * ax[s].T
         return m

@@ -19,8 +19,8 @@ from typing import Literal
 import numpy as np
 import scipy.linalg as sla
 
+from beamctl.config.schema import ConfigError
 from beamctl.models.params import ModelParameters
-from beamctl.models.schema import ConfigError
 
 DOF_PER_NODE = 4
 V, W, PHI_Y, PHI_Z = range(DOF_PER_NODE)

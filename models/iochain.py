@@ -35,7 +35,7 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.signal as sig
 
-from beamctl.models.schema import ConfigError
+from beamctl.config.schema import ConfigError
 
 FILTER_TYPES = ("butterworth", "bessel", "elliptic")
 IO_DEFAULTS: dict[str, Any] = {"delay_samples": 0.0, "anti_alias": "none", "reconstruction": "none"}

@@ -7,9 +7,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from beamctl.config.schema import ConfigError
 from beamctl.models.analysis import PLANE_IO, critical_load, frequency_response
 from beamctl.models.fe import PLANE_DOFS, FEModel, dof, plane_eigen
-from beamctl.models.schema import ConfigError
 
 MODES_PER_PLANE = 2
 # column order of Phi (eq. 15) and of q_m (eq. 13): (1y, 1z, 2y, 2z)

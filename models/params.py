@@ -14,7 +14,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from beamctl.models.schema import (
+from beamctl.config.schema import (
     ConfigError,
     integer,
     merge,

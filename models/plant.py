@@ -19,21 +19,38 @@ computed only when the load crosses into another grid cell.
 Imperfection: a stress-free initial bow r0 (shape of the first buckling mode, largest
 lateral deviation ``bow.amplitude`` in direction ``bow.angle_deg`` from +y towards +z) acts
 as the load Fx Kg r0; an eccentric load application at offset ``eccentricity.amplitude``
-acts as end moments Fx e at the spring elements. The state is the elastic deflection r
-(what the strain gauges see); the total shape is r + r0.
+acts as end moments Fx e at the spring elements. The beam's coordinates describe the elastic
+deflection r (what the strain gauges see); the total shape is r + r0.
+
+The rig's I/O chain (``io``, models/iochain.py): the four actuator forces reach the beam
+through the reconstruction filter after a transport delay of ``io.delay_samples`` samples
+from the sampling instant, and the strains are measured behind the anti-aliasing filter; the
+axial load acts undelayed and unfiltered. The state is [reconstruction filter, beam (q, q'),
+anti-aliasing filter], discretised exactly with the delayed zero-order hold; the default
+chain (no delay, no filter) is the beam alone.
 """
 
 from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import scipy.linalg as sla
 
+from beamctl.config.schema import (
+    ConfigError,
+    integer,
+    merge,
+    nonnegative,
+    number,
+    positive,
+    read_yaml,
+    validate,
+)
 from beamctl.models.analysis import buckling_mode
 from beamctl.models.fe import (
     PHI_Y,
@@ -45,18 +62,10 @@ from beamctl.models.fe import (
     plane_eigen,
     plane_indices,
 )
-from beamctl.models.schema import (
-    integer,
-    merge,
-    nonnegative,
-    number,
-    positive,
-    read_yaml,
-    validate,
-)
+from beamctl.models.iochain import DelayedZOH, IOChain, delayed_zoh, io_chain, with_filters
 
 PLANT_DEFAULTS: dict[str, Any] = {
-    "sample_rate": 2000.0,
+    "sample_rate_hz": 2000.0,
     "modes_per_plane": 6,
     "basis_reference_load": 0.0,
     "load_tolerance": 0.5,
@@ -67,7 +76,7 @@ PLANT_DEFAULTS: dict[str, Any] = {
 }
 
 _SCHEMA = {
-    "sample_rate": positive("Hz"),
+    "sample_rate_hz": positive("Hz"),
     "modes_per_plane": integer(low=2, high=40),
     "basis_reference_load": nonnegative("N"),
     "load_tolerance": positive("N"),
@@ -84,6 +93,8 @@ _SCHEMA = {
 }
 
 _CACHE_SIZE = 8
+N_FORCES = 4        # actuator forces (Fay,A, Faz,A, Fay,B, Faz,B); the fifth input is Fx
+N_STRAINS = 4
 
 
 @dataclass(frozen=True)
@@ -133,7 +144,7 @@ class Noise:
 class PlantConfig:
     """Validated settings of the simulated plant (see the module docstring)."""
 
-    sample_rate: float
+    sample_rate_hz: float
     modes_per_plane: int
     basis_reference_load: float
     load_tolerance: float
@@ -141,22 +152,33 @@ class PlantConfig:
     bow: Offset
     eccentricity: Offset
     noise: Noise
+    io: IOChain = field(default_factory=IOChain)
 
     @property
     def sample_period(self) -> float:
-        return 1.0 / self.sample_rate
+        return 1.0 / self.sample_rate_hz
 
 
 def plant_config(overrides: dict[str, Any] | None = None, source: str = "",
                  prefix: str = "") -> PlantConfig:
     """Validate ``overrides`` over PLANT_DEFAULTS (key by key) into a PlantConfig; ``prefix``
-    names the section in messages."""
-    v = validate(merge(PLANT_DEFAULTS, overrides or {}), _SCHEMA, source, prefix)
+    names the section in messages. ``io`` is the rig's I/O chain (models/iochain.py)."""
+    overrides = overrides or {}
+    io = None
+    if isinstance(overrides, dict):
+        if "sample_rate" in overrides:
+            raise ConfigError(f"{prefix}sample_rate", overrides["sample_rate"],
+                              f"{prefix}sample_rate_hz in its place (the key was renamed; the same "
+                              f"value, in Hz)", source)
+        overrides = dict(overrides)
+        io = overrides.pop("io", None)
+    v = validate(merge(PLANT_DEFAULTS, overrides), _SCHEMA, source, prefix)
     return PlantConfig(
-        sample_rate=v["sample_rate"], modes_per_plane=v["modes_per_plane"],
+        sample_rate_hz=v["sample_rate_hz"], modes_per_plane=v["modes_per_plane"],
         basis_reference_load=v["basis_reference_load"], load_tolerance=v["load_tolerance"],
         load=LoadRamp(**v["load"]), bow=Offset(**v["bow"]),
-        eccentricity=Offset(**v["eccentricity"]), noise=Noise(**v["noise"]))
+        eccentricity=Offset(**v["eccentricity"]), noise=Noise(**v["noise"]),
+        io=io_chain(io, source, f"{prefix}io"))
 
 
 def load_plant_config(path: str | Path) -> PlantConfig:
@@ -199,11 +221,13 @@ def ritz_basis(model: FEModel, plane: Plane, modes: int, reference_load: float,
 
 
 class Plant:
-    """The beam-column sampled at ``config.sample_rate``.
+    """The beam-column sampled at ``config.sample_rate_hz``.
 
-    Each sample: ``measure()`` gives the strains and the load-cell reading of the current
-    state; ``step(forces_n)`` applies the four actuator forces (Fay,A, Faz,A, Fay,B, Faz,B),
-    held constant over the sample, and advances one sample along the load programme.
+    Each sample: ``measure()`` gives the strains (behind the anti-aliasing filter) and the
+    load-cell reading of the current state; ``step(forces_n)`` applies the four actuator forces
+    (Fay,A, Faz,A, Fay,B, Faz,B) commanded at this sampling instant, held for one sample and
+    reaching the beam through the I/O chain's delay and reconstruction filter, and advances
+    one sample along the load programme.
     """
 
     def __init__(self, model: FEModel, config: PlantConfig) -> None:
@@ -239,13 +263,45 @@ class Plant:
         self._lateral = np.stack([basis[[dof(k, PLANE_DOFS[p][0]) for k in nodes]]
                                   for p in ("y", "z")])  # [2 x n_beam x n]
 
-        self._state = np.zeros(2 * n)
-        self._next = np.zeros(2 * n)
-        self._inputs = np.zeros(5)
+        # the I/O chain: state [reconstruction filter, beam (q, q'), anti-aliasing filter]
+        io = config.io
+        a, b, c, d = self.augmented(0.0)        # C, D and the filters' rows do not depend on Fx
+        n_states = a.shape[0]
+        n_aa = 0 if io.anti_alias is None else N_STRAINS * io.anti_alias.state_space()[0].shape[0]
+        n_rec = n_states - 2 * n - n_aa
+        self.n_states = n_states
+        self._q = slice(n_rec, n_rec + n)       # the beam's coordinates within the state
+        used = np.flatnonzero(np.any(c != 0.0, axis=0))
+        self._measured = slice(int(used[0]), int(used[-1]) + 1)
+        self._c = np.ascontiguousarray(c[:, self._measured])
+        # the step's inputs: u_k-whole, and u_k-whole-1 when the delay has a fraction of a
+        # sample; then Fx. The last ``whole + 1`` forces are kept in a ring, the oldest at
+        # ``_head``.
+        whole = int(math.floor(io.delay_samples))
+        self._fractional = io.delay_samples != whole
+        n_inputs = N_FORCES * (2 if self._fractional else 1) + 1
+        self._inputs = np.zeros(n_inputs)
+        self._history = np.zeros((whole + 1, N_FORCES))
+        self._delayed = whole > 0 or self._fractional
+        self._head = 0
+        # feedthrough y = C x + D u: u is the input held just before the sampling instant,
+        # i.e. the previous step's (u_k-1-whole, Fx_k-1); zero for this beam, kept general
+        feedthrough = np.zeros((N_STRAINS, n_inputs))
+        feedthrough[:, :N_FORCES], feedthrough[:, -1] = d[:, :N_FORCES], d[:, N_FORCES]
+        self._feedthrough = feedthrough if np.any(feedthrough) else None
+        # the anti-aliasing filter at rest: x_aa = settle [recon, beam] + settle_load Fx
+        aa = slice(n_states - n_aa, n_states)
+        self._aa = aa
+        self._settle = -np.linalg.solve(a[aa, aa], a[aa, :aa.start]) if n_aa else None
+        self._settle_load = -np.linalg.solve(a[aa, aa], b[aa, N_FORCES]) if n_aa else None
+
+        self._state = np.zeros(n_states)
+        self._next = np.zeros(n_states)
+        self._forced = np.zeros(n_states)
         self._cache: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
         self._bin = None
         self._ad = self._bd = None
-        self._strain_out = np.zeros(4)
+        self._strain_out = np.zeros(N_STRAINS)
         self._rng = np.random.default_rng(config.noise.seed)
         self._noise_block = np.zeros((0, 5))
         self._noise_index = 0
@@ -254,7 +310,8 @@ class Plant:
 
     # -- load-dependent discretisation -------------------------------------------------
     def continuous(self, axial_load: float) -> tuple[np.ndarray, np.ndarray]:
-        """Continuous-time A(Fx) [2n x 2n] and B [2n x 5] (inputs: 4 forces, Fx)."""
+        """The beam alone in continuous time: A(Fx) [2n x 2n] and B [2n x 5] (inputs: 4
+        forces, Fx)."""
         n = self.n_coordinates
         a = np.zeros((2 * n, 2 * n))
         a[:n, n:] = np.eye(n)
@@ -263,15 +320,20 @@ class Plant:
         b = np.vstack([np.zeros((n, 5)), self._input])
         return a, b
 
-    def discretise(self, axial_load: float) -> tuple[np.ndarray, np.ndarray]:
-        """Exact zero-order-hold discretisation at ``axial_load``."""
+    def augmented(self, axial_load: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The beam with the I/O chain's filters in continuous time (A, B, C, D): inputs the 4
+        forces (through the reconstruction filter) and Fx, outputs the 4 measured strains."""
         a, b = self.continuous(axial_load)
-        ns, ni = a.shape[0], b.shape[1]
-        aug = np.zeros((ns + ni, ns + ni))
-        aug[:ns, :ns], aug[:ns, ns:] = a, b
-        phi = sla.expm(aug * self.sample_period)
+        c = np.hstack([self._strain, np.zeros_like(self._strain)])
+        return with_filters(a, b, c, self.config.io, N_FORCES)
+
+    def discretise(self, axial_load: float) -> DelayedZOH:
+        """Exact discretisation at ``axial_load``: zero-order hold, the chain's delay on the
+        forces, Fx undelayed."""
+        a, b, _, _ = self.augmented(axial_load)
         self.discretisations += 1
-        return phi[:ns, :ns].copy(), phi[:ns, ns:].copy()
+        return delayed_zoh(a, b[:, :N_FORCES], self.sample_period, self.config.io.delay_samples,
+                           b_direct=b[:, N_FORCES:])
 
     def _use_load(self, axial_load: float) -> None:
         cell = 2.0 * self.config.load_tolerance
@@ -280,7 +342,9 @@ class Plant:
             return
         entry = self._cache.get(index)
         if entry is None:
-            entry = self.discretise(index * cell)
+            zoh = self.discretise(index * cell)
+            before = (zoh.b_before,) if self._fractional else ()
+            entry = (np.ascontiguousarray(zoh.ad), np.hstack([zoh.b_now, *before, zoh.b_direct]))
             self._cache[index] = entry
             if len(self._cache) > _CACHE_SIZE:
                 self._cache.popitem(last=False)
@@ -292,25 +356,46 @@ class Plant:
     # -- simulation ------------------------------------------------------------------------
     def reset(self, time_s: float = 0.0) -> None:
         """Place the beam at rest in static equilibrium under the programme's load at
-        ``time_s`` with no actuator force."""
+        ``time_s`` with no actuator force (none in the delay either), the filters at rest."""
         self.time = time_s
         self.axial_load = self.config.load.load_at(time_s)
-        n = self.n_coordinates
         k = self._k_elastic - self.axial_load * self._k_geometric
-        self._state[:n] = np.linalg.solve(k, self._input[:, 4] * self.axial_load)
-        self._state[n:] = 0.0
+        self._state[:] = 0.0
+        self._state[self._q] = np.linalg.solve(k, self._input[:, 4] * self.axial_load)
+        if self._settle is not None:
+            aa = self._aa
+            self._state[aa] = self._settle @ self._state[:aa.start] + self._settle_load * self.axial_load
+        self._history[:] = 0.0
+        self._head = 0
+        self._inputs[:] = 0.0
+        self._inputs[-1] = self.axial_load
         self._use_load(self.axial_load)
 
     def step(self, forces_n: np.ndarray) -> None:
-        """Apply the actuator forces (N) for one sample period and advance."""
-        self._inputs[:4] = forces_n
-        self._inputs[4] = self.axial_load
+        """Apply the actuator forces (N) commanded now for one sample period and advance."""
+        inputs = self._inputs
+        if self._delayed:
+            self._delay(forces_n)
+        else:
+            inputs[:4] = forces_n
+        inputs[-1] = self.axial_load
         np.dot(self._ad, self._state, out=self._next)
-        self._next += self._bd @ self._inputs
+        np.dot(self._bd, inputs, out=self._forced)
+        self._next += self._forced
         self._state, self._next = self._next, self._state
         self.time += self.sample_period
         self.axial_load = self.config.load.load_at(self.time)
         self._use_load(self.axial_load)
+
+    def _delay(self, forces_n: np.ndarray) -> None:
+        """Inputs <- u_k-whole (and u_k-whole-1); the ring's oldest entry then takes u_k."""
+        history, head = self._history, self._head
+        length = len(history)
+        self._inputs[:4] = history[(head + 1) % length] if length > 1 else forces_n
+        if self._fractional:
+            self._inputs[4:8] = history[head]
+        history[head] = forces_n
+        self._head = (head + 1) % length
 
     def _noise(self) -> np.ndarray:
         if self._noise_index >= len(self._noise_block):
@@ -323,22 +408,20 @@ class Plant:
         return row
 
     def measure(self) -> tuple[np.ndarray, float]:
-        """(strains [eps_y1, eps_z1, eps_y2, eps_z2], load-cell reading in N) of the current
-        state, noise included. The strain array is reused by the next call."""
+        """(strains [eps_y1, eps_z1, eps_y2, eps_z2] behind the anti-aliasing filter, load-cell
+        reading in N) of the current state, noise included. The strain array is reused by the
+        next call."""
         noise = self._noise()
-        np.dot(self._strain, self._state[:self.n_coordinates], out=self._strain_out)
+        np.dot(self._c, self._state[self._measured], out=self._strain_out)
+        if self._feedthrough is not None:
+            self._strain_out += self._feedthrough @ self._inputs
         self._strain_out += noise[:4]
         return self._strain_out, self.axial_load + float(noise[4])
 
     # -- observation for experiments and tests ------------------------------------------------
-    @property
-    def coordinates(self) -> np.ndarray:
-        """Generalised coordinates of the elastic deflection (copy)."""
-        return self._state[:self.n_coordinates].copy()
-
     def elastic_deflection(self) -> np.ndarray:
         """Elastic lateral deflection (v, w) at the beam nodes in m, [n_beam x 2]."""
-        return (self._lateral @ self._state[:self.n_coordinates]).T
+        return (self._lateral @ self._state[self._q]).T
 
     def deflection(self) -> tuple[float, float]:
         """Largest elastic lateral deflection magnitude along the beam (m) and its direction
@@ -350,4 +433,4 @@ class Plant:
 
     def displacement(self) -> np.ndarray:
         """Elastic FE displacement vector r (4N) of the current state."""
-        return self.basis @ self._state[:self.n_coordinates]
+        return self.basis @ self._state[self._q]

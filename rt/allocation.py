@@ -25,7 +25,7 @@ SPAN_ROUNDING = 1e-12   # relative: far above the few ulps of the coefficients, 
 
 def geometry(actuators: Actuators) -> StackGeometry:
     """The stack geometry the controller believes in."""
-    return StackGeometry(force_constant=actuators.force_constant, bias_voltage=actuators.bias_voltage,
+    return StackGeometry(force_constant_n_per_v=actuators.force_constant, bias_voltage=actuators.bias_voltage,
                          orientation_deg=tuple(actuators.orientation_deg))
 
 
@@ -38,23 +38,21 @@ class Allocator:
     """
 
     def __init__(self, actuators: Actuators) -> None:
-        self.v_min = actuators.min_voltage
-        self.v_max = actuators.max_voltage
-        self.v_mid = 0.5 * (self.v_min + self.v_max)
-        self.v_span = self.v_max - self.v_min
+        self.min_voltage_v = actuators.min_voltage_v
+        self.max_voltage_v = actuators.max_voltage_v
+        self.mid_voltage_v = 0.5 * (self.min_voltage_v + self.max_voltage_v)
+        self.voltage_span_v = self.max_voltage_v - self.min_voltage_v
         # a spread that exceeds the span only by rounding (a force that needs exactly the whole
         # range) is reachable: scaling it by 1 - eps would report saturation for nothing
-        self._span_fits = self.v_span * (1.0 + SPAN_ROUNDING)
-        self.bias = actuators.bias_voltage
-        self.force_constant = actuators.force_constant
+        self._span_fits = self.voltage_span_v * (1.0 + SPAN_ROUNDING)
+        k = actuators.force_constant
         # per support, per stack: volts per newton of Fy and of Fz (2/3 e_i / k)
         self._coef = []
         for t1 in actuators.orientation_deg:
             row = []
             for i in range(STACKS):
                 t = math.radians(t1 + 120.0 * i)
-                row.append((2.0 / 3.0 * math.cos(t) / self.force_constant,
-                            2.0 / 3.0 * math.sin(t) / self.force_constant))
+                row.append((2.0 / 3.0 * math.cos(t) / k, 2.0 / 3.0 * math.sin(t) / k))
             self._coef.append(tuple(row))
         self.geometry = geometry(actuators)
         self.scale_a = 1.0
@@ -75,12 +73,12 @@ class Allocator:
         if spread <= self._span_fits:
             scale = 1.0
         elif spread < math.inf:
-            scale = self.v_span / spread
+            scale = self.voltage_span_v / spread
         else:                                   # NaN (invalid demand) or overflow
             scale = 0.0
             g1 = g2 = g3 = hi = lo = 0.0
-        centre = self.v_mid - scale * 0.5 * (hi + lo)
-        v_min, v_max = self.v_min, self.v_max
+        centre = self.mid_voltage_v - scale * 0.5 * (hi + lo)
+        v_min, v_max = self.min_voltage_v, self.max_voltage_v
         for k, g in ((0, g1), (1, g2), (2, g3)):
             v = centre + scale * g
             voltages[first + k] = v_min if v < v_min else (v_max if v > v_max else v)

@@ -12,7 +12,6 @@ import os
 from beamctl.rt.config import Realtime
 
 MCL_CURRENT, MCL_FUTURE = 1, 2
-MCL_NONE = 0
 _previous: dict = {}
 
 

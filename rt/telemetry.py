@@ -3,7 +3,7 @@ writer thread.
 
 The loop never waits for the disk: ``push`` copies one row into the ring (into a row view
 made before the loop) or, if the writer has fallen a whole buffer behind, drops the record
-and counts it. The writer appends whole rows and flushes at least every ``flush_interval``
+and counts it. The writer appends whole rows and flushes at least every ``flush_interval_s``
 (<= 0.5 s), so after a ``kill -9`` the file holds everything up to the last flush.
 
 File format (``.btl``): the line ``BEAMCTL-TELEMETRY 1``, an 8-byte little-endian length,
@@ -32,11 +32,11 @@ class TelemetryWriter:
     """Ring buffer plus writer thread. Use ``start()``, ``push(record)`` per sample, ``close()``."""
 
     def __init__(self, path: str | Path, columns: list[str], capacity: int,
-                 flush_interval: float = 0.25, meta: dict | None = None) -> None:
+                 flush_interval_s: float = 0.25, meta: dict | None = None) -> None:
         self.path = Path(path)
         self.columns = list(columns)
         self.capacity = int(capacity)
-        self.flush_interval = float(flush_interval)
+        self.flush_interval_s = float(flush_interval_s)
         self._ring = np.zeros((self.capacity, len(columns)))
         self._rows = [self._ring[i] for i in range(self.capacity)]   # views made once
         self._head = 0        # records pushed (loop thread only)
@@ -57,8 +57,8 @@ class TelemetryWriter:
         from beamctl.rt.controller import RECORD_COLUMNS
 
         settings = controller.config.telemetry
-        return cls(path, RECORD_COLUMNS, capacity=int(settings.buffer_time * controller.sample_rate_hz),
-                   flush_interval=settings.flush_interval, meta=meta)
+        return cls(path, RECORD_COLUMNS, capacity=int(settings.buffer_time_s * controller.sample_rate_hz),
+                   flush_interval_s=settings.flush_interval_s, meta=meta)
 
     def start(self) -> TelemetryWriter:
         self._thread = threading.Thread(target=self._run, name="telemetry-writer", daemon=True)
@@ -92,7 +92,7 @@ class TelemetryWriter:
         while not self._stop.is_set():
             self._drain()
             self._file.flush()
-            self._stop.wait(self.flush_interval)
+            self._stop.wait(self.flush_interval_s)
 
     def close(self) -> None:
         """Write everything pushed so far and close the file."""

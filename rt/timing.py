@@ -17,22 +17,22 @@ _HALF_BIN = 10 ** (-0.5 / _PER_DECADE)
 class StageTimer:
     """Durations (s) of one stage of the cycle."""
 
-    __slots__ = ("name", "last", "max", "count", "total", "counts")
+    __slots__ = ("name", "last_s", "max_s", "count", "total_s", "counts")
 
     def __init__(self, name: str) -> None:
         self.name = name
-        self.last = 0.0
-        self.max = 0.0
+        self.last_s = 0.0
+        self.max_s = 0.0
         self.count = 0
-        self.total = 0.0
+        self.total_s = 0.0
         self.counts = [0] * (len(_EDGES) + 1)
 
     def record(self, seconds: float) -> None:
-        self.last = seconds
-        if seconds > self.max:
-            self.max = seconds
+        self.last_s = seconds
+        if seconds > self.max_s:
+            self.max_s = seconds
         self.count += 1
-        self.total += seconds
+        self.total_s += seconds
         self.counts[bisect.bisect_right(_EDGES, seconds)] += 1
 
     def percentile(self, p: float) -> float:
@@ -44,13 +44,13 @@ class StageTimer:
         for i, c in enumerate(self.counts):
             running += c
             if running >= target and c:
-                return _EDGES[i] * _HALF_BIN if i < len(_EDGES) else self.max
-        return self.max
+                return _EDGES[i] * _HALF_BIN if i < len(_EDGES) else self.max_s
+        return self.max_s
 
     def summary(self) -> dict:
         us = 1e6
-        return {"count": self.count, "last_us": self.last * us, "max_us": self.max * us,
-                "mean_us": (self.total / self.count * us) if self.count else math.nan,
+        return {"count": self.count, "last_us": self.last_s * us, "max_us": self.max_s * us,
+                "mean_us": (self.total_s / self.count * us) if self.count else math.nan,
                 "p50_us": self.percentile(50) * us, "p99_us": self.percentile(99) * us}
 
 

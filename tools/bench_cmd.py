@@ -27,7 +27,7 @@ def step_timing(samples: int = 50_000) -> dict:
     """Median and 99th percentile of one control step (estimator, schedule, law, allocation,
     safety) in a running controller, over a sweep of loads and vibrating strains."""
     table = load_table(default_table_path())
-    controller = Controller(table, controller_config({"start_ramp_time": 0.0}))
+    controller = Controller(table, controller_config({"start_ramp_time_s": 0.0}))
     rng = np.random.default_rng(0)
     inputs = []
     for k in range(1000):
@@ -66,7 +66,7 @@ def timer_pacing(cycles: int = 5000) -> dict:
     table = load_table(default_table_path())
     config = controller_config({"pacing": "timer"})
     plant = Plant(build_model(table.model_parameters),
-                  plant_config({"sample_rate": table.design.sample_rate_hz,
+                  plant_config({"sample_rate_hz": table.design.sample_rate_hz,
                                 "load": {"start": 2000.0, "end": 2000.0}}))
     hal = SimBackend(plant, geometry(config.actuators)).open()
     try:
@@ -97,7 +97,7 @@ def can_latency(samples: int = 5000) -> dict:
     table = load_table(default_table_path())
     config = controller_config({"pacing": "sample"})
     plant = Plant(build_model(table.model_parameters),
-                  plant_config({"sample_rate": table.design.sample_rate_hz,
+                  plant_config({"sample_rate_hz": table.design.sample_rate_hz,
                                 "load": {"start": 2000.0, "end": 2000.0},
                                 "bow": {"amplitude": 5e-5, "angle_deg": 234.0}}))
     channel = f"bench-{time.monotonic_ns()}"
@@ -115,7 +115,7 @@ def can_latency(samples: int = 5000) -> dict:
         emulator_bus.shutdown()
     if result.signal_received:
         raise Interrupted(result.signal_received, "the CAN latency measurement")
-    latencies = emulator.latencies[100:samples + 50]
+    latencies = emulator.latencies_s[100:samples + 50]
     latencies = latencies[np.isfinite(latencies)]
     budget = bus_budget(backend.contract, table.design.sample_rate_hz, 1e6)
     fd = bus_budget(backend.contract, table.design.sample_rate_hz, 1e6, True, 4e6)

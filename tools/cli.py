@@ -83,7 +83,7 @@ def _discard_stdout() -> None:
 
 def _run(argv: list[str] | None) -> int:
     """Parse ``argv`` and run the command; every refusal and interruption in one line."""
-    from beamctl.models.schema import ConfigError
+    from beamctl.config.schema import ConfigError
     from beamctl.rt.telemetry import TelemetryError
 
     name = "beamctl"

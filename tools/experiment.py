@@ -7,6 +7,10 @@ Each mode runs the load ramp on a fresh plant with the same scenario and the sam
 - ``interpolate``: the shipped gain table, linear interpolation, anti-windup on;
 - ``paper``: the experiment's setup, gains for 0..3500 N every 500 N switched stepwise and
   an integrator without anti-windup.
+The rig may differ from the controller's belief: the plant's own beam (``plant.model``), its
+own stacks (``hal.sim.own_actuators``) and its I/O chain (``plant.io``: transport delay,
+anti-aliasing and reconstruction filters, models/iochain.py); the report states the chain and
+the controller design of each run.
 A run ends when the measured deflection passes ``experiment.deflection_limit`` or the ramp
 reaches its end. A controller fault does not end a run: the beam is watched until it fails.
 SIGINT or SIGTERM during a run ramps the stacks to bias (the loop's stop) and raises
@@ -28,12 +32,13 @@ from pathlib import Path
 
 import numpy as np
 
+from beamctl.config.schema import ConfigError, boolean, merge, positive, read_yaml, validate
 from beamctl.gains.build import build_table
 from beamctl.gains.table import GainTable, require_checked
 from beamctl.hal.sim import SimBackend
 from beamctl.models import build_model, critical_load, reduce
 from beamctl.models.analysis import lateral_displacements
-from beamctl.models.schema import ConfigError, boolean, merge, positive, read_yaml, validate
+from beamctl.models.plant import plant_config
 from beamctl.rt.controller import Controller
 from beamctl.rt.loop import ControlLoop
 from beamctl.rt.safety import Fault
@@ -43,6 +48,8 @@ from beamctl.tools.service import (
     build_plant,
     load_gain_table,
     plant_geometry,
+    plant_parameters,
+    plant_settings,
     service_config,
 )
 from beamctl.tools.signals import Interrupted
@@ -90,7 +97,9 @@ class RunTrace:
 
 
 def experiment_config(data: dict | None = None, source: str = "") -> tuple[ServiceConfig, dict]:
-    """The scenario over the shipped defaults: (service config, experiment settings)."""
+    """The scenario over the shipped defaults: (service config, experiment settings). The
+    simulated rig (``plant``, its own ``plant.model`` and ``plant.io``) is checked now, before
+    any table is built or run (its sample rate against the table's when the plant is built)."""
     merged = merge(SCENARIO, data or {})
     experiment = validate(merged.pop("experiment"), _EXPERIMENT_SCHEMA, source, "experiment.")
     cfg = service_config(merged, source)
@@ -98,6 +107,8 @@ def experiment_config(data: dict | None = None, source: str = "") -> tuple[Servi
         raise ConfigError("hal.backend", cfg.hal.backend,
                           "'sim': beamctl experiment runs the simulated rig (`beamctl run` drives "
                           "the rig over CAN)", source)
+    plant_config(cfg.plant, source, "plant.")
+    plant_parameters(cfg)
     return cfg, experiment
 
 
@@ -131,6 +142,20 @@ def paper_table(cfg: ServiceConfig) -> GainTable:
                     "leave its run out with --no-paper (experiment.paper_mode: false); "
                     "`beamctl gains build --mode paper --config F --out paper.yaml` shows the check")
     return table
+
+
+def design_label(table: GainTable | None) -> str:
+    """The controller design a run used, in words, for the report (``None``: the uncontrolled
+    run): the table's design kind, rate, grid and schedule, and the I/O chain it assumes."""
+    if table is None:
+        return "none (controller armed, stacks at bias)"
+    d, s = table.design, table.schedule
+    schedule = "interpolated" if s.mode == "interpolate" else "switched (paper)"
+    kind = (f"integral LQR, {d.sample_rate_hz:g} Hz, velocity filter {d.velocity_cutoff_hz:g} Hz"
+            if d.kind == "integral-lqr" else f"{d.kind}, {d.sample_rate_hz:g} Hz")
+    chain = "a direct I/O chain" if d.io.is_direct else f"the I/O chain: {d.io.describe()}"
+    return (f"{kind}, gains at {len(table.loads_n)} loads {table.loads_n[0]:g}..{table.loads_n[-1]:g} N "
+            f"{schedule}; assumes {chain}")
 
 
 def experiment_tables(cfg: ServiceConfig, settings: dict) -> dict[str, GainTable]:
@@ -227,7 +252,7 @@ def angle_at(trace: RunTrace, threshold: float) -> float | None:
     return math.degrees(math.atan2(a["deflection_z_m"][i], a["deflection_y_m"][i])) % 360.0
 
 
-def summarise(trace: RunTrace) -> dict:
+def summarise(trace: RunTrace, design: str) -> dict:
     a = trace.arrays()
     load, d = a["load_n"], a["deflection_m"]
     below_3000 = load <= 3000.0
@@ -240,6 +265,7 @@ def summarise(trace: RunTrace) -> dict:
         "max_deflection_below_3000N_mm": float(d[below_3000].max() * 1e3) if below_3000.any() else None,
         "true_max_deflection_below_3000N_mm": (float(a["true_deflection_m"][below_3000].max() * 1e3)
                                                if below_3000.any() else None),
+        "design": design,
         "end": trace.end,
         "fault": trace.fault,
         "plant_time_s": trace.plant_s,
@@ -262,17 +288,21 @@ def run_experiment(cfg: ServiceConfig, settings: dict, tables: dict[str, GainTab
         traces[mode] = run_mode(mode, cfg, settings, tables[mode], telemetry_dir, step)
     if progress:
         progress(1000, 1000, "done")
-    plant_model = build_plant(cfg, tables[modes[0]]).model
+    io = plant_settings(cfg, tables[modes[0]].design.sample_rate_hz).io
     summary: dict = {"critical_load_N": critical_load(build_model(cfg.model)),
-                     "plant_critical_load_N": critical_load(plant_model)}
+                     "plant_critical_load_N": critical_load(build_model(plant_parameters(cfg))),
+                     "io_chain": {"description": io.describe(), **io.to_dict()}}
     names = {"uncontrolled": "uncontrolled", "interpolate": "controlled", "paper": "paper_switching"}
     for mode, trace in traces.items():
-        summary[names[mode]] = summarise(trace)
+        design = design_label(None if mode == "uncontrolled" else tables[mode])
+        summary[names[mode]] = summarise(trace, design)
     plant_s = sum(t.plant_s for t in traces.values())
     wall_s = sum(t.wall_s for t in traces.values())
     summary["scenario"] = {"source": cfg.source, "bow_amplitude_mm": 1e3 * cfg.plant["bow"]["amplitude"],
                            "bow_angle_deg": cfg.plant["bow"]["angle_deg"],
                            "force_constant_N_per_V": cfg.controller.actuators.force_constant,
+                           "rig_force_constant_N_per_V": plant_geometry(cfg).force_constant_n_per_v,
+                           "plant_model": cfg.plant_model,
                            "load_rate_N_per_s": cfg.plant["load"]["rate"],
                            "deflection_limit_mm": 1e3 * settings["deflection_limit"]}
     summary["sim_realtime_factor"] = plant_s / wall_s if wall_s else None

@@ -55,7 +55,13 @@ def summary_table(summary: dict) -> str:
                  ""))
     widths = [max(len(r[i]) for r in rows) for i in range(5)]
     text = "\n".join("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)) for r in rows)
-    return f"critical load Fx,cr = {summary['critical_load_N']:.0f} N\n" + text
+    head = [f"critical load Fx,cr = {summary['critical_load_N']:.0f} N"]
+    if "io_chain" in summary:
+        head.append(f"rig I/O chain: {summary['io_chain']['description']}")
+    for label, key in (("interpolated", "controlled"), ("paper 500 N", "paper_switching")):
+        if "design" in summary.get(key, {}):
+            head.append(f"design ({label}): {summary[key]['design']}")
+    return "\n".join(head) + "\n" + text
 
 
 def remove_report(out: Path) -> None:

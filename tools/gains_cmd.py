@@ -9,11 +9,11 @@ import sys
 
 import numpy as np
 
+from beamctl.config.schema import ConfigError
 from beamctl.gains.build import build_table, closed_loop_checks
 from beamctl.gains.defaults import default_table_path
 from beamctl.gains.table import GainTable, changed_file_message, load_table, write_table
 from beamctl.models import build_model, load_parameters
-from beamctl.models.schema import ConfigError
 from beamctl.tools.outputs import check_dir, check_file, replacing
 from beamctl.tools.progress import ProgressBar
 

@@ -8,11 +8,11 @@ import signal
 import sys
 import threading
 
+from beamctl.config.schema import ConfigError
 from beamctl.hal.base import HalConfigurationError
 from beamctl.hal.budget import LIMIT, bus_budget
 from beamctl.hal.config import check_bitrates
 from beamctl.hal.dbc import Contract
-from beamctl.models.schema import ConfigError
 from beamctl.tools.argtypes import positive, seconds
 from beamctl.tools.service import build_plant, load_gain_table, load_service_config, plant_geometry
 
@@ -62,8 +62,8 @@ def run_plant(args: argparse.Namespace) -> int:
     if threading.current_thread() is threading.main_thread():   # the operator's stop
         for sig in (signal.SIGINT, signal.SIGTERM):
             previous[sig] = signal.signal(sig, lambda *_: emulator.stop_event.set())
-    samples = int(args.duration * plant.config.sample_rate) if args.duration else None
-    print(f"plant on {interface}:{channel}: {plant.config.sample_rate:g} Hz, {args.pace}, load "
+    samples = int(args.duration * plant.config.sample_rate_hz) if args.duration else None
+    print(f"plant on {interface}:{channel}: {plant.config.sample_rate_hz:g} Hz, {args.pace}, load "
           f"{plant.config.load.start:g} -> {plant.config.load.end:g} N at {plant.config.load.rate:g} N/s",
           flush=True)
     try:

@@ -6,10 +6,10 @@ from pathlib import Path
 
 import numpy as np
 
+from beamctl.config.schema import ConfigError
 from beamctl.models import critical_load, eigenfrequencies, fe_frequency_response
 from beamctl.models.fe import FEModel
 from beamctl.models.modal import ModalModel
-from beamctl.models.schema import ConfigError
 from beamctl.tools.outputs import replacing
 
 # the figures of ``beamctl experiment``'s report

@@ -17,8 +17,8 @@ import sys
 import threading
 from pathlib import Path
 
+from beamctl.config.schema import ConfigError
 from beamctl.hal.base import HalError
-from beamctl.models.schema import ConfigError
 from beamctl.rt import realtime
 from beamctl.rt.controller import Controller
 from beamctl.rt.loop import ControlLoop
@@ -35,7 +35,7 @@ def add_parser(sub) -> None:
     p.add_argument("--telemetry", metavar="FILE", help="telemetry file (default: run.telemetry or "
                                                         "beamctl-<time>.btl)")
     p.add_argument("--duration", type=seconds, metavar="S",
-                   help="stop after S seconds (default: run.duration; 0 until stopped)")
+                   help="stop after S seconds (default: run.duration_s; 0 until stopped)")
     p.add_argument("--require-rt", action="store_true",
                    help="refuse to run without SCHED_FIFO, affinity and locked memory")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
@@ -49,8 +49,8 @@ def _check_voltage_range(cfg, hal) -> None:
         return
     signal_range = contract.voltages.signals[0]
     a = cfg.controller.actuators
-    for key, value in (("min_voltage", a.min_voltage), ("max_voltage", a.max_voltage),
-                       ("bias_voltage", a.bias_voltage)):
+    for key, value in (("min_voltage_v", a.min_voltage_v), ("max_voltage_v", a.max_voltage_v),
+                       ("bias_voltage_v", a.bias_voltage)):
         if not signal_range.minimum <= value <= signal_range.maximum:
             raise ConfigError(f"controller.actuators.{key}", value,
                               f"a voltage the DBC's {contract.voltages.name} carries "
@@ -81,8 +81,8 @@ def run(args: argparse.Namespace) -> int:
         return 2
     _check_voltage_range(cfg, hal)
     controller = Controller(table, cfg.controller)
-    duration = cfg.duration if args.duration is None else args.duration
-    max_cycles = int(duration * table.design.sample_rate_hz) if duration else None
+    duration_s = cfg.duration_s if args.duration is None else args.duration
+    max_cycles = int(duration_s * table.design.sample_rate_hz) if duration_s else None
     # the banner goes to stderr with the other messages: stdout carries the summary alone
     print(f"beamctl run: {cfg.hal.backend} backend, {table.design.sample_rate_hz:g} Hz, "
           f"{cfg.controller.pacing} pacing, gain table {cfg.table_path}, telemetry {path}", file=sys.stderr)
@@ -105,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
         notifier.feed()
 
     loop = ControlLoop(controller, hal, telemetry=telemetry, stop_on_fault=False,
-                       max_cycles=max_cycles, on_cycle=on_cycle if notifier.watchdog_interval else None)
+                       max_cycles=max_cycles, on_cycle=on_cycle if notifier.watchdog_interval_s else None)
     rearm = None
     if threading.current_thread() is threading.main_thread():
         rearm = signal.signal(signal.SIGUSR1, lambda *_: loop.request_rearm())
@@ -143,5 +143,5 @@ def run(args: argparse.Namespace) -> int:
     if dropped:
         print(f"beamctl run: warning: {dropped} of {dropped + result.telemetry.get('written', 0)} "
               f"telemetry records were dropped: the writer fell a whole ring "
-              f"(controller.telemetry.buffer_time) behind the loop", file=sys.stderr)
+              f"(controller.telemetry.buffer_time_s) behind the loop", file=sys.stderr)
     return 0

@@ -16,7 +16,7 @@ class Notifier:
         self._socket = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) if self.enabled else None
         usec = int(os.environ.get("WATCHDOG_USEC", "0") or 0)
         # feed the watchdog at half its period, as sd_watchdog_enabled(3) advises
-        self.watchdog_interval = usec / 2e6 if usec and self.enabled else 0.0
+        self.watchdog_interval_s = usec / 2e6 if usec and self.enabled else 0.0
         self._last_feed = 0.0
 
     def notify(self, message: str) -> None:
@@ -29,17 +29,14 @@ class Notifier:
     def ready(self, status: str = "") -> None:
         self.notify("READY=1" + (f"\nSTATUS={status}" if status else ""))
 
-    def status(self, text: str) -> None:
-        self.notify(f"STATUS={text}")
-
     def stopping(self) -> None:
         self.notify("STOPPING=1")
 
     def feed(self, now: float | None = None) -> None:
         """Call from the control loop: pets the watchdog when due (so a hung loop is
         restarted by systemd)."""
-        if self.watchdog_interval:
+        if self.watchdog_interval_s:
             now = time.monotonic() if now is None else now
-            if now - self._last_feed >= self.watchdog_interval:
+            if now - self._last_feed >= self.watchdog_interval_s:
                 self._last_feed = now
                 self.notify("WATCHDOG=1")

@@ -9,7 +9,7 @@ One YAML file, every section optional, every key checked::
     hal:        backend and its settings  (hal/config.py)
     plant:      the simulated beam: plant settings (models/plant.py) and ``model:``, its own
                 beam parameters when it should differ from the controller's model
-    run:        {telemetry: path, duration: s (0: until stopped)}
+    run:        {telemetry: path, duration_s: seconds to run (0: until stopped)}
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from beamctl.config.schema import ConfigError, merge, nonnegative, path, read_yaml, refuse_renamed, validate
 from beamctl.gains.defaults import default_table_path
 from beamctl.gains.table import GainTable, load_table
 from beamctl.hal.base import HalBase
@@ -25,12 +26,13 @@ from beamctl.hal.config import HalConfig, hal_config
 from beamctl.models import build_model
 from beamctl.models.actuators import StackGeometry
 from beamctl.models.params import ModelParameters, parameters_from_dict
-from beamctl.models.plant import Plant, plant_config
-from beamctl.models.schema import ConfigError, merge, nonnegative, path, read_yaml, validate
+from beamctl.models.plant import Plant, PlantConfig, plant_config
 from beamctl.rt.allocation import geometry
 from beamctl.rt.config import ControllerConfig, controller_config
 
 SECTIONS = ("model", "gains", "controller", "hal", "plant", "run")
+# Keys renamed to carry their unit: a file that still sets an old one is refused, naming the new.
+RENAMED_RUN_KEYS = {"duration": "duration_s"}
 
 
 @dataclass(frozen=True)
@@ -43,7 +45,7 @@ class ServiceConfig:
     plant: dict = field(default_factory=dict)          # plant settings (validated when built)
     plant_model: dict = field(default_factory=dict)    # the plant's own parameter overrides
     telemetry: str = ""
-    duration: float = 0.0
+    duration_s: float = 0.0
 
 
 def _section(data: dict, name: str, source: str) -> dict:
@@ -65,8 +67,10 @@ def service_config(data: dict | None = None, source: str = "") -> ServiceConfig:
         raise ConfigError(f"model.{exc.key}", exc.value, exc.expected, source) from None
     gains = validate({"table": "", **_section(data, "gains", source)}, {"table": path()}, source, "gains.")
     table = Path(gains["table"]) if gains["table"] else default_table_path()
-    run = validate({"telemetry": "", "duration": 0.0, **_section(data, "run", source)},
-                   {"telemetry": path(), "duration": nonnegative("s")}, source, "run.")
+    run_section = _section(data, "run", source)
+    refuse_renamed(run_section, RENAMED_RUN_KEYS, source, "run.")
+    run = validate({"telemetry": "", "duration_s": 0.0, **run_section},
+                   {"telemetry": path(), "duration_s": nonnegative("s")}, source, "run.")
     plant = dict(_section(data, "plant", source))
     plant_model = plant.pop("model", None) or {}
     if not isinstance(plant_model, dict):
@@ -79,7 +83,7 @@ def service_config(data: dict | None = None, source: str = "") -> ServiceConfig:
                           "timer of the PC's would let frames queue up and add delay", source)
     return ServiceConfig(
         source=source, model=params, table_path=table, controller=controller, hal=hal, plant=plant,
-        plant_model=plant_model, telemetry=run["telemetry"], duration=run["duration"])
+        plant_model=plant_model, telemetry=run["telemetry"], duration_s=run["duration_s"])
 
 
 def load_service_config(path: str | Path | None) -> ServiceConfig:
@@ -103,26 +107,37 @@ def plant_geometry(cfg: ServiceConfig) -> StackGeometry:
     """The rig the plant has: the controller's belief, or the plant's own actuators."""
     if cfg.hal.sim["own_actuators"]:
         a = cfg.hal.sim["actuators"]
-        return StackGeometry(a["force_constant"], a["bias_voltage"], tuple(a["orientation_deg"]))
+        return StackGeometry(a["force_constant_n_per_v"], a["bias_voltage_v"], tuple(a["orientation_deg"]))
     return geometry(cfg.controller.actuators)
+
+
+def plant_parameters(cfg: ServiceConfig) -> ModelParameters:
+    """The simulated beam's parameters: ``plant.model`` over the controller's model (or that
+    model itself)."""
+    if not cfg.plant_model:
+        return cfg.model
+    try:
+        return parameters_from_dict(merge(cfg.model.to_dict(), cfg.plant_model), cfg.source)
+    except ConfigError as exc:
+        raise ConfigError(f"plant.model.{exc.key}", exc.value, exc.expected, cfg.source) from None
+
+
+def plant_settings(cfg: ServiceConfig, sample_rate_hz: float,
+                   overrides: dict[str, Any] | None = None) -> PlantConfig:
+    """The plant section (with ``overrides``) validated at ``sample_rate_hz``, the gain table's
+    rate: a plant sampled at any other rate is refused."""
+    pc = plant_config({"sample_rate_hz": sample_rate_hz, **cfg.plant, **(overrides or {})}, cfg.source,
+                      "plant.")
+    if pc.sample_rate_hz != sample_rate_hz:
+        raise ConfigError("plant.sample_rate_hz", pc.sample_rate_hz,
+                          f"the gain table's sample rate {sample_rate_hz:g} Hz", cfg.source)
+    return pc
 
 
 def build_plant(cfg: ServiceConfig, table: GainTable, overrides: dict[str, Any] | None = None) -> Plant:
     """The simulated beam: the plant section over the controller's model (or its own beam)."""
-    settings = {"sample_rate": table.design.sample_rate_hz, **cfg.plant, **(overrides or {})}
-    if settings["sample_rate"] != table.design.sample_rate_hz:
-        raise ConfigError("plant.sample_rate", settings["sample_rate"],
-                          f"the gain table's sample rate {table.design.sample_rate_hz:g} Hz", cfg.source)
-    pc = plant_config(settings, cfg.source, "plant.")
-    if cfg.plant_model:
-        try:
-            own = parameters_from_dict(merge(cfg.model.to_dict(), cfg.plant_model), cfg.source)
-        except ConfigError as exc:
-            raise ConfigError(f"plant.model.{exc.key}", exc.value, exc.expected, cfg.source) from None
-        model = build_model(own)
-    else:
-        model = build_model(cfg.model)
-    return Plant(model, pc)
+    pc = plant_settings(cfg, table.design.sample_rate_hz, overrides)
+    return Plant(build_model(plant_parameters(cfg)), pc)
 
 
 def build_hal(cfg: ServiceConfig, table: GainTable, plant: Plant | None = None) -> HalBase:
@@ -134,6 +149,7 @@ def build_hal(cfg: ServiceConfig, table: GainTable, plant: Plant | None = None) 
     from beamctl.hal.can_backend import CanBackend
 
     c = cfg.hal.can
-    return CanBackend(table.design.sample_rate_hz, c["interface"], c["channel"], bitrate=c["bitrate"],
-                      fd=c["fd"], data_bitrate=c["data_bitrate"], dbc=c["dbc"] or None,
+    return CanBackend(table.design.sample_rate_hz, c["interface"], c["channel"],
+                      bitrate_bit_s=c["bitrate_bit_s"], fd=c["fd"],
+                      data_bitrate_bit_s=c["data_bitrate_bit_s"], dbc=c["dbc"] or None,
                       record=c["record"] or None, rate_tolerance=c["rate_tolerance"])

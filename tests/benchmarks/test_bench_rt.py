@@ -13,7 +13,7 @@ from beamctl.rt.controller import Controller
 
 def test_control_step(benchmark):
     table = load_table(default_table_path())
-    c = Controller(table, controller_config({"start_ramp_time": 0.0}))
+    c = Controller(table, controller_config({"start_ramp_time_s": 0.0}))
     inputs = []
     for k in range(1000):
         s = Sample()

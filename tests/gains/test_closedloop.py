@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 
 from beamctl.gains.build import check_load
-from beamctl.gains.closedloop import closed_loop_matrix, sampled_fe_plane
+from beamctl.gains.closedloop import closed_loop_matrix
 from beamctl.gains.compensator import MATRICES, PLANE_CHANNELS, CompensatorPoint
 from beamctl.gains.defaults import default_table_path
+from beamctl.gains.rig import RigPlane
 from beamctl.gains.schedule import GainSchedule
 from beamctl.gains.table import load_table
 from beamctl.hal.base import Sample
@@ -47,12 +48,12 @@ def test_the_loop_the_check_analyses_is_the_loop_the_controller_runs(paper_model
         table = _with_estimator_feedback(table)
     comp = table.compensator
     period = comp.period_s
-    plant, c = sampled_fe_plane(paper_model, load, IOChain(delay_samples=delay), period, "y")
+    plant, c = RigPlane(paper_model, IOChain(delay_samples=delay), 1.0 / period).sampled(load)
     states, io = comp.plane_states["y"], list(PLANE_CHANNELS["y"])
     point = GainSchedule.from_table(table).matrices_at(load)
     a_cl = closed_loop_matrix(plant, c, point.plane(states, "y"), comp.h[np.ix_(io, io)], period)
 
-    controller = Controller(table, controller_config({"start_ramp_time": 0.0}))
+    controller = Controller(table, controller_config({"start_ramp_time_s": 0.0}))
     n = plant.ad.shape[0]
     x = 1e-9 * np.random.default_rng(7).standard_normal(n)       # a few micro-strain at the gauges
     sample = Sample()

@@ -29,7 +29,7 @@ GEOMETRY = geometry(controller_config().actuators)
 
 
 def make_plant(**overrides) -> Plant:
-    settings = {"sample_rate": TABLE.design.sample_rate_hz, "load": {"start": 1500.0, "end": 1500.0},
+    settings = {"sample_rate_hz": TABLE.design.sample_rate_hz, "load": {"start": 1500.0, "end": 1500.0},
                 "bow": {"amplitude": 5e-5, "angle_deg": 234.0}, "noise": {"strain": 2e-7, "load": 1.0}}
     settings.update(overrides)
     return Plant(MODEL, plant_config(settings))
@@ -67,12 +67,12 @@ class CanRig:
     name = "can"
 
     def __init__(self, pace: str = "lockstep", latency_samples: int = 0, on_step=None,
-                 answer_timeout: float = 0.05, **plant_overrides) -> None:
+                 answer_timeout_s: float = 0.05, **plant_overrides) -> None:
         channel = f"beamctl-test-{next(_channels)}"
         self.plant = make_plant(**plant_overrides)
         self.emulator_bus = can.Bus(interface="virtual", channel=channel)
         self.emulator = CanPlantEmulator(self.emulator_bus, self.plant, GEOMETRY, pace=pace,
-                                         answer_timeout=answer_timeout,
+                                         answer_timeout_s=answer_timeout_s,
                                          latency_samples=latency_samples, on_step=on_step)
         # lockstep runs at the controller's pace, not the DAQ's 2500 Hz: no rate check
         self.hal = _RigBackend(self.emulator, TABLE.design.sample_rate_hz, "virtual", channel,

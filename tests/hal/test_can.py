@@ -207,7 +207,7 @@ def test_default_frames_fit_classic_can_at_2500_hz_and_the_limit_is_said():
     message = str(err.value)
     assert f"{100 * 3000.0 * bits_per_sample / 1e6:.1f} %" in message, message
     assert f"at most {highest} Hz" in message and "CAN FD" in message, message
-    fd = check_budget(CONTRACT, 5000.0, 1e6, fd=True, data_bitrate=4e6)
+    fd = check_budget(CONTRACT, 5000.0, 1e6, fd=True, data_bitrate_bit_s=4e6)
     assert fd.max_sample_rate_hz > 6000
 
 

@@ -26,7 +26,7 @@ def test_beam_held_straight_at_3000_N_then_safe_when_the_daq_stops():
             rig.emulator.stop_event.set()      # the DAQ falls silent
 
     rig = CanRig(load={"start": 3000.0, "end": 3000.0}, bow={"amplitude": 5e-5, "angle_deg": 234.0},
-                 on_step=on_step, answer_timeout=1.0)
+                 on_step=on_step, answer_timeout_s=1.0)
     config = controller_config({"pacing": "sample", "safety": {"stale_periods": STALE_PERIODS}})
     controller = Controller(TABLE, config)
     missing_before_fault = []

@@ -35,7 +35,7 @@ def test_a_late_answer_is_applied_but_never_taken_for_the_next_sample_s_answer()
     emulator_bus = can.Bus(interface="virtual", channel="emulator-late")
     controller_bus = can.Bus(interface="virtual", channel="emulator-late")
     emulator = CanPlantEmulator(emulator_bus, make_plant(), GEOMETRY, pace="lockstep",
-                                answer_timeout=2.0,
+                                answer_timeout_s=2.0,
                                 on_step=lambda plant, v: steps.append(v.copy()))
     try:
         emulator.start(max_samples=3)

@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from beamctl.models import ConfigError, critical_load, eigenfrequencies, reduce, state_space
+from beamctl.config.schema import ConfigError
+from beamctl.models import critical_load, eigenfrequencies, reduce, state_space
 from beamctl.models.analysis import fe_plane_blocks
 from beamctl.models.fe import DOF_PER_NODE, V, W
 

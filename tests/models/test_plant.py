@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from beamctl.models import ConfigError, critical_load, eigenfrequencies
+from beamctl.config.schema import ConfigError
+from beamctl.models import critical_load, eigenfrequencies
 from beamctl.models.plant import LoadRamp, Plant, load_plant_config, plant_config
 
 ZERO = np.zeros(4)
@@ -53,7 +54,7 @@ def test_steady_actuator_force_gives_the_full_model_s_static_strain(paper_model,
     cfg = plant_config({"load": {"start": load, "end": load}})
     plant = Plant(paper_model, cfg)
     force = np.array([5.0, -3.0, 2.0, 4.0])
-    for _ in range(int(1.5 * cfg.sample_rate)):
+    for _ in range(int(1.5 * cfg.sample_rate_hz)):
         plant.step(force)
     strain, _ = plant.measure()
     expected = paper_model.output_matrix @ np.linalg.solve(
@@ -66,7 +67,7 @@ def test_zero_order_hold_is_exact_whatever_the_sample_rate(paper_model):
     common instants (an approximate discretisation would not)."""
     states = []
     for rate in (2000.0, 8000.0):
-        plant = Plant(paper_model, plant_config({"sample_rate": rate,
+        plant = Plant(paper_model, plant_config({"sample_rate_hz": rate,
                                                  "load": {"start": 1500.0, "end": 1500.0}}))
         per = int(rate / 2000.0)
         for k in range(200):

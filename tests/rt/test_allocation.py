@@ -15,8 +15,8 @@ actuators = st.builds(
     Actuators,
     force_constant=st.floats(min_value=0.05, max_value=50.0),
     bias_voltage=st.just(75.0),
-    min_voltage=st.floats(min_value=-30.0, max_value=20.0),
-    max_voltage=st.floats(min_value=100.0, max_value=150.0),
+    min_voltage_v=st.floats(min_value=-30.0, max_value=20.0),
+    max_voltage_v=st.floats(min_value=100.0, max_value=150.0),
     orientation_deg=st.tuples(st.floats(min_value=-360, max_value=360),
                               st.floats(min_value=-360, max_value=360)),
 )
@@ -34,7 +34,7 @@ def _allocate(act, u):
 def test_no_voltage_ever_leaves_the_range(act, u):
     _, v = _allocate(act, u)
     assert np.all(np.isfinite(v)), f"non-finite voltage {v} for demand {u}"
-    assert np.all(v >= act.min_voltage) and np.all(v <= act.max_voltage), (v, u)
+    assert np.all(v >= act.min_voltage_v) and np.all(v <= act.max_voltage_v), (v, u)
 
 
 @settings(max_examples=300)
@@ -57,8 +57,8 @@ def test_unreachable_forces_keep_their_direction_and_touch_the_limits(act, fy, f
     assert abs(cross) <= 1e-9 * np.linalg.norm(fa) * np.linalg.norm(demand), "force turned"
     assert fa @ demand > 0 and np.linalg.norm(fa) < np.linalg.norm(demand)
     np.testing.assert_allclose(np.linalg.norm(fa), alloc.scale_a * np.linalg.norm(demand), rtol=1e-9)
-    assert min(v[:3]) == act.min_voltage or math.isclose(min(v[:3]), act.min_voltage, abs_tol=1e-9)
-    assert math.isclose(max(v[:3]), act.max_voltage, abs_tol=1e-9)
+    assert min(v[:3]) == act.min_voltage_v or math.isclose(min(v[:3]), act.min_voltage_v, abs_tol=1e-9)
+    assert math.isclose(max(v[:3]), act.max_voltage_v, abs_tol=1e-9)
 
 
 @settings(max_examples=200)
@@ -67,12 +67,12 @@ def test_common_mode_centres_the_voltages_in_the_range(act, fy, fz):
     """As far from both limits as possible: equal margins to min and max."""
     _, v = _allocate(act, [fy, fz, fy, fz])
     for support in (v[:3], v[3:]):
-        below, above = support.min() - act.min_voltage, act.max_voltage - support.max()
-        assert math.isclose(below, above, abs_tol=1e-9 * (act.max_voltage - act.min_voltage))
+        below, above = support.min() - act.min_voltage_v, act.max_voltage_v - support.max()
+        assert math.isclose(below, above, abs_tol=1e-9 * (act.max_voltage_v - act.min_voltage_v))
 
 
 def test_zero_force_puts_every_stack_mid_range_and_non_finite_demand_gives_no_force():
-    act = Actuators(force_constant=2.5, bias_voltage=75.0, min_voltage=0.0, max_voltage=150.0,
+    act = Actuators(force_constant=2.5, bias_voltage=75.0, min_voltage_v=0.0, max_voltage_v=150.0,
                     orientation_deg=(90.0, 90.0))
     alloc, v = _allocate(act, [0.0, 0.0, 0.0, 0.0])
     np.testing.assert_array_equal(v, 75.0)
@@ -83,7 +83,7 @@ def test_zero_force_puts_every_stack_mid_range_and_non_finite_demand_gives_no_fo
 
 def test_a_stack_pointing_along_the_force_takes_the_largest_voltage():
     """Stack 1 at +y: a +y force raises stack 1 and lowers the other two equally."""
-    act = Actuators(force_constant=2.0, bias_voltage=75.0, min_voltage=0.0, max_voltage=150.0,
+    act = Actuators(force_constant=2.0, bias_voltage=75.0, min_voltage_v=0.0, max_voltage_v=150.0,
                     orientation_deg=(0.0, 0.0))
     _, v = _allocate(act, [60.0, 0.0, 0.0, 0.0])
     # f = 2/3 e.F = (40, -20, -20) N -> (20, -10, -10) V around the centre
@@ -94,7 +94,7 @@ def test_a_force_that_needs_exactly_the_whole_range_is_reachable():
     """100 N along stack 1 at 1 N/V needs stack forces (66.7, -33.3, -33.3) N: a spread of
     exactly the 100 V span, which rounding makes 100 V + 1 ulp. It is reproduced exactly, so
     it must not be reported as saturated (scale 1 - eps would hold the integrator)."""
-    act = Actuators(force_constant=1.0, bias_voltage=50.0, min_voltage=0.0, max_voltage=100.0,
+    act = Actuators(force_constant=1.0, bias_voltage=50.0, min_voltage_v=0.0, max_voltage_v=100.0,
                     orientation_deg=(0.0, 0.0))
     alloc, v = _allocate(act, [100.0, 0.0, 0.0, 0.0])
     assert alloc.scale_a == 1.0, f"scale {alloc.scale_a!r} for a force inside the range"

@@ -2,29 +2,56 @@
 
 import pytest
 
-from beamctl.models.schema import ConfigError
-from beamctl.rt.config import MAX_AMPLIFIER_VOLTAGE, controller_config
+from beamctl.config.schema import ConfigError
+from beamctl.rt.config import CONTROLLER_DEFAULTS, MAX_AMPLIFIER_VOLTAGE_V, RENAMED_KEYS, controller_config
 
 
 def test_the_amplifiers_150_V_is_the_highest_voltage_a_configuration_may_ask_for():
     """The piezo amplifiers of the rig give at most 150 V; a limit above it would let the
     allocation ask the stacks for a voltage they cannot take."""
-    assert MAX_AMPLIFIER_VOLTAGE == 150.0
-    assert controller_config({"actuators": {"max_voltage": 150.0}}).actuators.max_voltage == 150.0
+    assert MAX_AMPLIFIER_VOLTAGE_V == 150.0
+    assert controller_config({"actuators": {"max_voltage_v": 150.0}}).actuators.max_voltage_v == 150.0
     for too_high in (150.01, 200.0, float("inf")):
         with pytest.raises(ConfigError) as err:
-            controller_config({"actuators": {"max_voltage": too_high}}, prefix="controller.")
-        assert err.value.key == "controller.actuators.max_voltage", str(err.value)
+            controller_config({"actuators": {"max_voltage_v": too_high}}, prefix="controller.")
+        assert err.value.key == "controller.actuators.max_voltage_v", str(err.value)
         assert "<= 150" in str(err.value), str(err.value)
 
 
 @pytest.mark.parametrize(("actuators", "key"), [
-    ({"min_voltage": 150.0}, "actuators.min_voltage"),
-    ({"bias_voltage": 151.0}, "actuators.bias_voltage"),
-    ({"bias_voltage": -1.0}, "actuators.bias_voltage"),
-    ({"force_constant": 0.0}, "actuators.force_constant"),
+    ({"min_voltage_v": 150.0}, "actuators.min_voltage_v"),
+    ({"bias_voltage_v": 151.0}, "actuators.bias_voltage_v"),
+    ({"bias_voltage_v": -1.0}, "actuators.bias_voltage_v"),
+    ({"force_constant_n_per_v": 0.0}, "actuators.force_constant_n_per_v"),
 ])
 def test_inconsistent_stack_settings_are_refused_naming_the_key(actuators, key):
     with pytest.raises(ConfigError) as err:
         controller_config({"actuators": actuators})
     assert err.value.key == key, str(err.value)
+
+
+def _nested(dotted: str, value) -> dict:
+    *parents, leaf = dotted.split(".")
+    data = {leaf: value}
+    for part in reversed(parents):
+        data = {part: data}
+    return data
+
+
+def _keys(mapping: dict, prefix: str = "") -> set[str]:
+    out = set()
+    for key, value in mapping.items():
+        out |= _keys(value, f"{prefix}{key}.") if isinstance(value, dict) else {prefix + key}
+    return out
+
+
+@pytest.mark.parametrize(("old", "new"), sorted(RENAMED_KEYS.items()))
+def test_a_key_renamed_to_carry_its_unit_is_refused_naming_the_new_key(old, new):
+    """A lab file written before the keys carried their units (safety.ramp_time: 0.5) must not
+    be read as if the setting were absent: it is refused, naming the key to write instead."""
+    assert new in _keys(CONTROLLER_DEFAULTS), f"{new} is not a controller key"
+    with pytest.raises(ConfigError) as err:
+        controller_config(_nested(old, 0.5), "lab.yaml", "controller.")
+    message = str(err.value)
+    assert err.value.key == f"controller.{old}", message
+    assert f"controller.{new} in its place" in message and "\n" not in message, message

@@ -62,7 +62,7 @@ def test_step_computes_q_velocity_integral_and_u_as_specified(table):
     """q = (C0 Phi)^-1 y, qdot = omega_c x Butterworth high-pass of q (scipy.signal.lfilter
     as reference), xi = sum T q, u = -K(Fx) [q, qdot, xi] with K interpolated at the
     filtered load."""
-    c = _running(table, start_ramp_time=0.0)
+    c = _running(table, start_ramp_time_s=0.0)
     rng = np.random.default_rng(3)
     ys = 2e-6 * rng.standard_normal((300, 4))
     loads = 1234.0 + 3.0 * rng.standard_normal(300)
@@ -98,7 +98,7 @@ def test_velocity_estimate_starts_without_a_kick(table):
 
 
 def test_start_fades_the_voltages_in_from_bias(table):
-    c = Controller(table, controller_config({"start_ramp_time": 0.1}))
+    c = Controller(table, controller_config({"start_ramp_time_s": 0.1}))
     s = _sample((2e-5, 2e-5, 1e-5, 1e-5))
     c.arm(s)
     np.testing.assert_array_equal(c.voltages, 75.0)
@@ -117,8 +117,8 @@ def test_anti_windup_stops_the_integrator_winding_into_saturation(table):
     growing, without it keeps winding (the paper's beam buckled once 150 V was hit)."""
     results = {}
     for enabled in (True, False):
-        c = _running(table, anti_windup=enabled, start_ramp_time=0.0,
-                     safety={"saturation_time": 10.0})
+        c = _running(table, anti_windup=enabled, start_ramp_time_s=0.0,
+                     safety={"saturation_time_s": 10.0})
         s = _sample((4e-4, 0.0, 4e-4, 0.0), 3000.0)
         while c.allocator.scale_a == 1.0:
             c.step(s)
@@ -142,7 +142,7 @@ def test_anti_windup_stops_the_integrator_winding_into_saturation(table):
     ((0, 0, 0, 0), 6000.0, Fault.LOAD_OUT_OF_SENSOR_RANGE),
 ])
 def test_bad_input_faults_and_ramps_to_bias_without_a_jump(table, strains, load, fault):
-    c = _running(table, start_ramp_time=0.0, safety={"ramp_time": 0.1})
+    c = _running(table, start_ramp_time_s=0.0, safety={"ramp_time_s": 0.1})
     deflected = _sample((1e-4, -5e-5, 5e-5, 2e-5), 1500.0)
     for _ in range(300):
         c.step(deflected)
@@ -272,7 +272,7 @@ def test_the_step_allocates_no_arrays(tmp_path):
 
 
 def test_rearm_waits_for_the_ramp_to_reach_bias(table):
-    c = _running(table, start_ramp_time=0.0)
+    c = _running(table, start_ramp_time_s=0.0)
     for _ in range(300):
         c.step(_sample((1e-4, -5e-5, 5e-5, 2e-5), 1500.0))
     c.fault(Fault.OPERATOR, "test")
@@ -288,7 +288,7 @@ def test_rearm_waits_for_the_ramp_to_reach_bias(table):
 def test_a_start_after_a_long_armed_dwell_has_no_velocity_kick(table):
     """The velocity filter starts at rest on the sample the controller starts on, however far
     the beam moved while armed."""
-    c = Controller(table, controller_config({"start_ramp_time": 0.0}))
+    c = Controller(table, controller_config({"start_ramp_time_s": 0.0}))
     c.arm(_sample((0.0, 0.0, 0.0, 0.0)))
     for k in range(2000):   # the beam deflects while the controller is only armed
         c.step(_sample((4e-5 * k / 2000, 0.0, 2e-5 * k / 2000, 0.0)))
@@ -312,7 +312,7 @@ def test_a_start_on_a_non_finite_strain_faults(table):
 def test_a_missing_sample_holds_the_voltages_until_the_stale_input_fault(table):
     """No new sample, no new measurement: the law does not integrate or filter the last one
     again; the stacks hold, and the stale_periods-th missing sample faults."""
-    c = _running(table, start_ramp_time=0.0, safety={"stale_periods": 5})
+    c = _running(table, start_ramp_time_s=0.0, safety={"stale_periods": 5})
     deflected = _sample((1e-4, -5e-5, 5e-5, 2e-5), 1500.0)
     for _ in range(300):
         c.step(deflected)

@@ -39,8 +39,8 @@ def table():
 
 def _loop(table, script, pacing="sample", write_delay=0.0, fail_write_after=None,
           default=DEFLECTED, max_cycles=None, **cfg):
-    config = controller_config({"start_ramp_time": 0.0, "pacing": pacing,
-                                "safety": {"ramp_time": RAMP_TIME, **cfg.pop("safety", {})}, **cfg})
+    config = controller_config({"start_ramp_time_s": 0.0, "pacing": pacing,
+                                "safety": {"ramp_time_s": RAMP_TIME, **cfg.pop("safety", {})}, **cfg})
     controller = Controller(table, config)
     hal = ScriptedHal(table.design.sample_rate_hz, script, default=default,
                       write_delay=write_delay, fail_write_after=fail_write_after)
@@ -221,7 +221,7 @@ def test_telemetry_survives_kill_9_up_to_the_last_flush(tmp_path):
     script = textwrap.dedent(f"""
         import time, numpy as np
         from beamctl.rt.telemetry import TelemetryWriter
-        w = TelemetryWriter({str(path)!r}, ["t", "x"], capacity=100000, flush_interval=0.25).start()
+        w = TelemetryWriter({str(path)!r}, ["t", "x"], capacity=100000, flush_interval_s=0.25).start()
         start = time.monotonic()
         print("started", flush=True)
         while True:
@@ -260,7 +260,7 @@ def test_operator_rearm_restarts_after_a_latched_fault(table):
     """What SIGUSR1 does in ``beamctl run``: after a fault at bias, a re-arm request clears
     it and the controller starts again, bumpless, from bias."""
     loop, hal = _loop(table, [DEFLECTED] * 100 + [((np.nan, 0.0, 0.0, 0.0), 1500.0)],
-                      default=oscillating, start_ramp_time=0.05)
+                      default=oscillating, start_ramp_time_s=0.05)
     loop.stop_on_fault = False
     seen = []
 
@@ -297,7 +297,7 @@ def test_an_unexpected_error_in_the_loop_ramps_the_stacks_to_bias_before_propaga
 def test_a_rearm_requested_during_the_ramp_waits_for_bias(table):
     """SIGUSR1 right after a fault must not make the voltages jump back to bias."""
     loop, hal = _loop(table, [DEFLECTED] * 300 + [((np.nan, 0.0, 0.0, 0.0), 1500.0)],
-                      default=oscillating, start_ramp_time=0.05)
+                      default=oscillating, start_ramp_time_s=0.05)
     loop.stop_on_fault = False
     states = []
 

@@ -135,8 +135,8 @@ def test_the_paper_design_as_a_compensator_gives_the_paper_step_s_voltages(table
     if mode == "paper":
         table = _paper_switching(table)
     strains, loads = _inputs(3900.0 if mode == "interpolate" else 3400.0)
-    config = controller_config({"start_ramp_time": 0.1, "anti_windup": anti_windup,
-                                "safety": {"saturation_time": 10.0}})
+    config = controller_config({"start_ramp_time_s": 0.1, "anti_windup": anti_windup,
+                                "safety": {"saturation_time_s": 10.0}})
     controller = Controller(table, config)
     reference = PaperStep(table, config)
     sample = Sample()

@@ -34,7 +34,7 @@ def test_the_ramp_reaches_bias_linearly_in_its_samples_and_then_holds_it():
 
 
 def _driving(table):
-    c = Controller(table, controller_config({"start_ramp_time": 0.0, "safety": {"ramp_time": 0.02}}))
+    c = Controller(table, controller_config({"start_ramp_time_s": 0.0, "safety": {"ramp_time_s": 0.02}}))
     s = Sample()
     s.strains[:] = (1e-4, -5e-5, 5e-5, 2e-5)
     s.axial_load = 1500.0

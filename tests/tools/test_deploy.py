@@ -11,7 +11,7 @@ DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
 def test_lab_config_is_a_valid_service_config():
     cfg = load_service_config(DEPLOY / "lab.yaml")
     assert cfg.hal.backend == "can" and cfg.hal.can["interface"] == "socketcan"
-    assert cfg.controller.pacing == "sample" and cfg.controller.actuators.max_voltage == 150.0
+    assert cfg.controller.pacing == "sample" and cfg.controller.actuators.max_voltage_v == 150.0
 
 
 def test_systemd_unit_runs_the_service_with_watchdog_and_realtime_limits():

@@ -6,7 +6,7 @@ import signal
 
 import pytest
 
-from beamctl.models.schema import ConfigError
+from beamctl.config.schema import ConfigError
 from beamctl.rt.controller import COL
 from beamctl.rt.safety import State
 from beamctl.rt.telemetry import read_telemetry
@@ -67,7 +67,8 @@ def test_json_has_the_documented_keys(report):
     s, _ = report
     assert set(s["uncontrolled"]) >= {"load_at_0.5mm_N", "load_at_1.0mm_N", "buckling_angle_deg"}
     assert set(s["controlled"]) >= {"load_at_1.0mm_N", "max_voltage_V", "max_deflection_below_3000N_mm",
-                                    "buckling_angle_deg"}
+                                    "buckling_angle_deg", "design"}
+    assert s["io_chain"]["description"] == "delay 0 samples", "the shipped rig's I/O chain is direct"
 
 
 def test_report_folder_has_figures_summary_and_readable_telemetry(report):
@@ -196,3 +197,56 @@ def test_an_experiment_on_another_backend_is_refused(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "hal.backend" in err and "simulated rig" in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize(("plant", "key"), [
+    ({"io": {"delay_samples": -1}}, "plant.io.delay_samples"),
+    ({"io": {"anti_alias": {"type": "chebyshev", "order": 2, "cutoff_hz": 100}}}, "plant.io.anti_alias.type"),
+    ({"io": {"reconstruction": {"type": "bessel", "order": 0, "cutoff_hz": 100}}},
+     "plant.io.reconstruction.order"),
+    ({"io": {"anti_alias": {"type": "butterworth", "order": 2, "cutoff_hz": "1 kHz"}}},
+     "plant.io.anti_alias.cutoff_hz"),
+    ({"io": {"delay": 1}}, "plant.io.delay"),
+    ({"sample_rate": 2500}, "plant.sample_rate"),
+])
+def test_a_bad_rig_io_chain_is_refused_in_one_line_before_any_run(tmp_path, capsys, plant, key):
+    import yaml
+
+    f = tmp_path / "rig.yaml"
+    f.write_text(yaml.safe_dump({"plant": plant}))
+    assert main(["experiment", "--config", str(f), "--out", str(tmp_path / "r")]) == 2
+    captured = capsys.readouterr()
+    assert captured.err.startswith(f"beamctl experiment: error: {f}: {key} = "), captured.err
+    assert len(captured.err.strip().splitlines()) == 1 and captured.out == "", captured
+    assert not (tmp_path / "r").exists(), "refused before the report folder is touched"
+
+
+def test_the_old_sample_rate_key_is_refused_naming_the_new_one_without_a_traceback(tmp_path):
+    """In a process of its own, as an operator with last year's scenario file sees it."""
+    f = tmp_path / "old.yaml"
+    f.write_text("plant:\n  sample_rate: 2500\n")
+    process = beamctl("experiment", "--config", str(f), "--out", str(tmp_path / "r"), cwd=tmp_path)
+    out, err = process.communicate(timeout=120)
+    lines = err.decode().strip().splitlines()
+    assert process.returncode == 2 and len(lines) == 1, err.decode()
+    assert "plant.sample_rate = 2500: expected plant.sample_rate_hz in its place" in lines[0], lines
+    assert out == b""
+
+
+def test_an_experiment_on_a_delayed_rig_runs_and_its_report_states_the_chain_and_the_design(tmp_path, capsys):
+    """One sample of transport delay, today's gains (designed for a direct chain): the
+    experiment runs end to end and says so in its summary, text and JSON."""
+    f = tmp_path / "delayed.yaml"
+    f.write_text("plant:\n  load: {start: 260.0, end: 800.0, rate: 400.0, hold: 0.0}\n"
+                 "  io: {delay_samples: 1}\n")
+    out = tmp_path / "report"
+    assert main(["experiment", "--config", str(f), "--out", str(out), "--no-paper", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["io_chain"] == {"description": "delay 1 samples", "delay_samples": 1.0,
+                                   "anti_alias": "none", "reconstruction": "none"}
+    assert summary["controlled"]["design"].startswith("integral LQR, 2500 Hz"), summary["controlled"]
+    assert summary["uncontrolled"]["design"].startswith("none"), summary["uncontrolled"]
+    assert summary["controlled"]["end"] == "ramp ended at 800 N", summary["controlled"]
+    text = (out / "summary.txt").read_text()
+    assert "rig I/O chain: delay 1 samples" in text and "design (interpolated): integral LQR" in text, text
+    assert json.loads((out / "summary.json").read_text())["io_chain"] == summary["io_chain"]

@@ -39,7 +39,7 @@ SIM = {"hal": {"backend": "sim"}, "controller": {"pacing": "sample"},
 
 def test_run_for_a_duration_writes_telemetry_and_exits_0(tmp_path, capsys):
     tel = tmp_path / "run.btl"
-    cfg = _config(tmp_path, **SIM, run={"telemetry": str(tel), "duration": 0.4})
+    cfg = _config(tmp_path, **SIM, run={"telemetry": str(tel), "duration_s": 0.4})
     assert main(["run", "--config", cfg]) == 0
     out = capsys.readouterr().out
     assert "ended STOPPED" in out and "0 dropped" in out
@@ -57,7 +57,7 @@ def test_a_table_for_another_model_is_refused(tmp_path, capsys):
 
 def test_a_bus_over_budget_is_refused_with_what_would_fit(tmp_path, capsys):
     cfg = _config(tmp_path, hal={"backend": "can", "can": {"interface": "virtual", "channel": "budget",
-                                                            "bitrate": 500000}})
+                                                            "bitrate_bit_s": 500000}})
     assert main(["run", "--config", cfg]) == 2
     err = capsys.readouterr().err
     highest = int(bus_budget(Contract(), 2500.0, 500e3).max_sample_rate_hz)
@@ -81,7 +81,7 @@ def test_service_against_the_plant_emulator_over_virtual_can(tmp_path, capsys):
     cfg = _config(tmp_path, hal={"backend": "can", "can": {"interface": "virtual", "channel": "service",
                                                             "rate_tolerance": 0.0}},
                   controller={"pacing": "sample", "safety": {"stale_periods": IN_PROCESS_STALE_PERIODS}},
-                  run={"telemetry": str(tmp_path / "can.btl"), "duration": 0.4})
+                  run={"telemetry": str(tmp_path / "can.btl"), "duration_s": 0.4})
     try:
         assert main(["run", "--config", cfg, "--json"]) == 0
     finally:
@@ -94,21 +94,33 @@ def test_service_against_the_plant_emulator_over_virtual_can(tmp_path, capsys):
     assert emulator.status_frames > 0 and emulator.last_state in (2, 4, 5)
 
 
+@pytest.mark.parametrize(("sections", "new_key"), [
+    ({"controller": {"safety": {"ramp_time": 0.5}}}, "controller.safety.ramp_time_s"),
+    ({"hal": {"can": {"bitrate": 1_000_000}}}, "hal.can.bitrate_bit_s"),
+    ({"run": {"duration": 10.0}}, "run.duration_s"),
+])
+def test_a_config_with_a_key_from_before_the_units_were_named_is_refused_in_one_line(tmp_path, capsys,
+                                                                                     sections, new_key):
+    assert main(["run", "--config", _config(tmp_path, **sections)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"expected {new_key} in its place" in err, err
+
+
 def test_a_voltage_range_the_dbc_cannot_carry_is_refused(tmp_path, capsys):
     cfg = _config(tmp_path, hal={"backend": "can", "can": {"interface": "virtual", "channel": "range"}},
-                  controller={"actuators": {"min_voltage": -20.0, "bias_voltage": 60.0}})
+                  controller={"actuators": {"min_voltage_v": -20.0, "bias_voltage_v": 60.0}})
     assert main(["run", "--config", cfg]) == 2
     err = capsys.readouterr().err
-    assert "controller.actuators.min_voltage" in err and "[0, 150] V" in err
+    assert "controller.actuators.min_voltage_v" in err and "[0, 150] V" in err
 
 
 def test_a_run_longer_than_the_telemetry_ring_loses_nothing(tmp_path, capsys):
     """The writer thread drains the ring while the loop runs (a 0.6 s ring, a 1.5 s run)."""
     tel = tmp_path / "long.btl"
-    controller = {"pacing": "sample", "telemetry": {"buffer_time": 0.6, "flush_interval": 0.1}}
+    controller = {"pacing": "sample", "telemetry": {"buffer_time_s": 0.6, "flush_interval_s": 0.1}}
     cfg = _config(tmp_path, **{**SIM, "controller": controller,
                                "hal": {"backend": "sim", "sim": {"pace": "wallclock"}},
-                               "run": {"telemetry": str(tel), "duration": 1.5}})
+                               "run": {"telemetry": str(tel), "duration_s": 1.5}})
     assert main(["run", "--config", cfg, "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["telemetry"]["dropped"] == 0
@@ -117,9 +129,9 @@ def test_a_run_longer_than_the_telemetry_ring_loses_nothing(tmp_path, capsys):
 
 
 def test_a_ring_shorter_than_two_flushes_is_refused(tmp_path, capsys):
-    cfg = _config(tmp_path, controller={"telemetry": {"buffer_time": 0.2, "flush_interval": 0.25}})
+    cfg = _config(tmp_path, controller={"telemetry": {"buffer_time_s": 0.2, "flush_interval_s": 0.25}})
     assert main(["run", "--config", cfg]) == 2
-    assert "controller.telemetry.buffer_time" in capsys.readouterr().err
+    assert "controller.telemetry.buffer_time_s" in capsys.readouterr().err
 
 
 def test_timer_pacing_with_the_can_backend_is_refused(tmp_path, capsys):
@@ -145,7 +157,7 @@ def test_a_single_point_grid_cannot_be_interpolated(tmp_path, capsys):
 
 
 def test_json_prints_exactly_one_object_and_the_banner_goes_to_stderr(tmp_path, capsys):
-    cfg = _config(tmp_path, **SIM, run={"telemetry": str(tmp_path / "run.btl"), "duration": 0.1})
+    cfg = _config(tmp_path, **SIM, run={"telemetry": str(tmp_path / "run.btl"), "duration_s": 0.1})
     assert main(["run", "--config", cfg, "--json"]) == 0
     captured = capsys.readouterr()
     assert json.loads(captured.out)["state"] == "STOPPED"
@@ -156,7 +168,7 @@ def test_ctrl_c_is_the_operator_s_stop_and_exits_0(tmp_path):
     """For the service SIGINT is a normal stop: ramp to bias, flush telemetry, exit 0."""
     tel = tmp_path / "run.btl"
     cfg = _config(tmp_path, **{**SIM, "hal": {"backend": "sim", "sim": {"pace": "wallclock"}},
-                               "run": {"telemetry": str(tel), "duration": 0}})
+                               "run": {"telemetry": str(tel), "duration_s": 0}})
     process = beamctl("run", "--config", cfg, cwd=tmp_path)
     try:
         deadline = time.monotonic() + 300
@@ -178,13 +190,13 @@ def test_a_recording_is_never_overwritten(tmp_path, capsys):
     start its own file."""
     tel = tmp_path / "run.btl"
     tel.write_bytes(b"the recording of an earlier run")
-    cfg = _config(tmp_path, **SIM, run={"telemetry": str(tel), "duration": 0.1})
+    cfg = _config(tmp_path, **SIM, run={"telemetry": str(tel), "duration_s": 0.1})
     assert main(["run", "--config", cfg]) == 2
     err = capsys.readouterr().err
     assert str(tel) in err and "never overwritten" in err and len(err.strip().splitlines()) == 1, err
     assert tel.read_bytes() == b"the recording of an earlier run"
     pattern = _config(tmp_path, **SIM, run={"telemetry": str(tmp_path / "run-%Y%m%d-%H%M%S.btl"),
-                                            "duration": 0.1})
+                                            "duration_s": 0.1})
     assert main(["run", "--config", pattern]) == 0
     made = sorted(p.name for p in tmp_path.glob("run-*.btl"))
     assert len(made) == 1 and made[0] != "run-%Y%m%d-%H%M%S.btl", made
@@ -201,7 +213,7 @@ def test_a_refused_real_time_start_leaves_no_telemetry_file(tmp_path, capsys, mo
 
     monkeypatch.setattr(realtime, "acquire", refuse)
     tel = tmp_path / "rt.btl"
-    cfg = _config(tmp_path, **SIM, run={"telemetry": str(tel), "duration": 0.1})
+    cfg = _config(tmp_path, **SIM, run={"telemetry": str(tel), "duration_s": 0.1})
     assert main(["run", "--config", cfg, "--require-rt"]) == 2
     err = capsys.readouterr().err
     assert "--require-rt" in err and "Traceback" not in err

@@ -7,9 +7,9 @@ import json
 import pytest
 import yaml
 
+from beamctl.config.schema import read_yaml
 from beamctl.gains.defaults import default_table_path
 from beamctl.gains.table import GainTableError
-from beamctl.models.schema import read_yaml
 from beamctl.tools.cli import main
 from beamctl.tools.experiment import experiment_config, paper_table
 
@@ -19,7 +19,7 @@ SIM = {"hal": {"backend": "sim"}, "controller": {"pacing": "sample"},
 
 def _service(tmp_path, table) -> str:
     f = tmp_path / "service.yaml"
-    f.write_text(yaml.safe_dump({**SIM, "gains": {"table": str(table)}, "run": {"duration": 0.02,
+    f.write_text(yaml.safe_dump({**SIM, "gains": {"table": str(table)}, "run": {"duration_s": 0.02,
                                  "telemetry": str(tmp_path / "run.btl")}}))
     return str(f)
 

@@ -235,6 +235,23 @@ def validate(data: Any, schema: Schema, source: str = "", prefix: str = "") -> d
     return out
 
 
+def refuse_renamed(data: Any, renamed: Mapping[str, str], source: str = "", prefix: str = "") -> None:
+    """Refuse a key that was renamed, in one line naming the key to use in its place.
+
+    ``renamed`` maps old dotted keys to their new names (``{"safety.ramp_time":
+    "safety.ramp_time_s"}``); ``prefix`` names the section in the message, as for ``validate``.
+    Call it on the user's data before merging it with the defaults.
+    """
+    for old, new in renamed.items():
+        *parents, leaf = old.split(".")
+        node = data
+        for part in parents:
+            node = node.get(part) if isinstance(node, Mapping) else None
+        if isinstance(node, Mapping) and leaf in node:
+            raise ConfigError(prefix + old, node[leaf],
+                              f"{prefix}{new} in its place (the key was renamed to carry its unit)", source)
+
+
 def read_yaml(path: str | Path) -> dict[str, Any]:
     """Read a YAML mapping from ``path``; a missing, unreadable or non-mapping file is refused."""
     p = Path(path)
