@@ -1,9 +1,11 @@
-"""Integral LQR gain design, gain table files and the gain schedule K(Fx).
+"""Gain design, the one controller form (a scheduled state-space compensator), gain table
+files and the gain schedule.
 
 Turns a model (models/) into a gain table file offline and reads it back, validated, for the
 real-time loop (rt/).
 """
 
+from beamctl.gains.compensator import Compensator, CompensatorPoint
 from beamctl.gains.discrete import LoopCheck, VelocityFilter, velocity_filter
 from beamctl.gains.lqr import Weights, augmented_system, lqr_gain
 from beamctl.gains.schedule import GainSchedule
@@ -17,6 +19,8 @@ from beamctl.gains.table import (
 )
 
 __all__ = [
+    "Compensator",
+    "CompensatorPoint",
     "DesignSettings",
     "GainSchedule",
     "GainTable",

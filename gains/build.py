@@ -1,5 +1,6 @@
-"""Build a gain table: the integral LQR at every grid load, and the discrete closed-loop
-check at every grid point and every midpoint between neighbours."""
+"""Build a gain table: the integral LQR at every grid load as the compensator the step runs,
+and the discrete closed-loop check of exactly those matrices at every grid point and every
+midpoint between neighbours."""
 
 from __future__ import annotations
 
@@ -10,9 +11,11 @@ from importlib import metadata
 import numpy as np
 
 from beamctl.config.schema import ConfigError
+from beamctl.gains.compensator import Compensator, CompensatorPoint, from_integral_lqr
 from beamctl.gains.defaults import DEFAULT_DESIGN, DEFAULT_SCHEDULE, PAPER_GRID_N
-from beamctl.gains.discrete import LoopCheck, check_load, velocity_filter
+from beamctl.gains.discrete import LoopCheck, pole_summary, velocity_filter
 from beamctl.gains.lqr import lqr_gain
+from beamctl.gains.rig import RigPlane
 from beamctl.gains.schedule import GainSchedule
 from beamctl.gains.table import DesignSettings, GainTable, ScheduleSettings
 from beamctl.models.fe import FEModel
@@ -35,37 +38,78 @@ def check_points(loads: Sequence[float]) -> list[float]:
     return sorted(loads + mids)
 
 
-def check_plan(table: GainTable) -> list[tuple[float, float | None, np.ndarray]]:
-    """(load, grid load whose gain is used or None, gain) of every closed-loop check: each grid
-    point and midpoint with the gain the schedule settles on there and, in ``paper`` mode,
-    the ends of each gain's reach through the hysteresis band: gain i is still on at
-    L_i + h/2 as the load rises and down to L_(i-1) - h/2 as it falls."""
-    schedule = GainSchedule(table)
-    plan = [(load, None, schedule.gain_at(load)) for load in check_points(table.loads_n)]
-    if table.schedule.mode == "paper":
-        half = 0.5 * table.schedule.hysteresis_n
-        loads = [float(x) for x in table.loads_n]
-        for i, gain in enumerate(table.gains):
+def _plan_loads(loads_n: Sequence[float], schedule: ScheduleSettings) -> list[tuple[float, int | None]]:
+    """(load, grid point whose matrices are used or None for the settled schedule's) of every
+    check: each grid point and midpoint and, in ``paper`` mode, the ends of each gain's reach
+    through the hysteresis band: gain i is still on at L_i + h/2 as the load rises and down to
+    L_(i-1) - h/2 as it falls."""
+    loads = [float(x) for x in loads_n]
+    plan: list[tuple[float, int | None]] = [(load, None) for load in check_points(loads)]
+    if schedule.mode == "paper":
+        half = 0.5 * schedule.hysteresis_n
+        for i in range(len(loads)):
             if half > 0 and i + 1 < len(loads):
-                plan.append((loads[i] + half, loads[i], gain))
+                plan.append((loads[i] + half, i))
             if half > 0 and i > 0 and loads[i - 1] - half >= loads[0]:
-                plan.append((loads[i - 1] - half, loads[i], gain))
+                plan.append((loads[i - 1] - half, i))
     return sorted(plan, key=lambda p: p[0])
+
+
+def check_plan(table: GainTable) -> list[tuple[float, float | None, CompensatorPoint]]:
+    """(load, grid load whose matrices are used or None, the matrices) of every closed-loop
+    check (see ``_plan_loads``): the schedule's own ``matrices_at`` where it settles, the grid
+    point's matrices at the band ends."""
+    schedule = GainSchedule.from_table(table)
+    comp = table.compensator
+    return [(load, None, schedule.matrices_at(load)) if i is None
+            else (load, float(table.loads_n[i]), comp.point(i))
+            for load, i in _plan_loads(table.loads_n, table.schedule)]
+
+
+def nominal_rig(model: FEModel, table: GainTable, plane: str = "y") -> RigPlane:
+    """The rig the design assumes: the model's FE plane with the I/O chain the design declares
+    (``design.io``) at the design's rate and stack force per volt."""
+    return RigPlane(model, table.design.io, table.design.sample_rate_hz, plane=plane)
+
+
+def check_load(model: FEModel, axial_load: float, point: CompensatorPoint, table: GainTable,
+               plane: str = "y", rig: RigPlane | None = None) -> LoopCheck:
+    """The discrete closed loop at ``axial_load``: the full FE model of one bending plane
+    (140 states) with the I/O chain the design declares, sampled with the delayed zero-order
+    hold at the table's rate (``nominal_rig``, or ``rig``), closed by the compensator matrices
+    ``point`` (gains.closedloop).
+
+    The two planes of the circular section have the same plant spectrum and, by design, the
+    same compensator block (tested): checking one plane checks both.
+    """
+    comp = table.compensator
+    rig = rig or nominal_rig(model, table, plane)
+    matrix = rig.loop_matrix(axial_load, point, comp.h, comp.plane_states[rig.plane], comp.period_s)
+    radius, damping = pole_summary(np.linalg.eigvals(matrix), table.design.sample_rate_hz)
+    return LoopCheck(load_n=float(axial_load), spectral_radius=radius, min_damping=damping)
 
 
 def closed_loop_checks(model: FEModel, table: GainTable, progress: Progress | None = None,
                        done: int = 0, total: int | None = None) -> tuple[LoopCheck, ...]:
     """The closed-loop check of ``table`` at every load of ``check_plan``."""
-    filt = velocity_filter(table.design.velocity_cutoff_hz, table.design.sample_rate_hz)
     plan = check_plan(table)
     total = total if total is not None else len(plan)
+    rig = nominal_rig(model, table)
     results = []
-    for i, (load, gain_load, gain) in enumerate(plan):
-        result = check_load(model, load, gain, table.c0_phi_inv, filt)
-        results.append(replace(result, gain_load_n=gain_load))
+    for i, (load, gain_load, point) in enumerate(plan):
+        results.append(replace(check_load(model, load, point, table, rig=rig), gain_load_n=gain_load))
         if progress:
             progress(done + i + 1, total, f"check {load:7.1f} N")
     return tuple(results)
+
+
+def integral_lqr_compensator(gains: np.ndarray, c0_phi_inv: np.ndarray,
+                             design: DesignSettings) -> Compensator:
+    """The paper's controller for the gains K [G x 4 x 12]: (C0 Phi)^-1, the high-pass velocity
+    estimate of ``design`` and K, as the compensator the step runs."""
+    filt = velocity_filter(design.velocity_cutoff_hz, design.sample_rate_hz)
+    return from_integral_lqr(gains, c0_phi_inv, 1.0 / design.sample_rate_hz, filt.b0, filt.b1, filt.a1,
+                             filt.scale)
 
 
 def build_table(model: FEModel, loads_n: Sequence[float] | None = None, mode: str = "interpolate",
@@ -73,7 +117,10 @@ def build_table(model: FEModel, loads_n: Sequence[float] | None = None, mode: st
                 check: bool = True, force: bool = False,
                 progress: Progress | None = None) -> GainTable:
     """Design K(Fx) on the grid ``loads_n`` (default: 0 to 4000 N every 50 N, or the paper's
-    0 to 3500 N every 500 N in ``paper`` mode) and check the closed loop."""
+    0 to 3500 N every 500 N in ``paper`` mode), write it as the compensator the step runs and
+    check the closed loop."""
+    if design.kind != "integral-lqr":
+        raise ValueError(f"build_table designs integral-lqr tables, not {design.kind}")
     if loads_n is None:
         loads_n = PAPER_GRID_N if mode == "paper" else np.arange(0.0, 4000.0 + 1e-9, 50.0)
     loads = np.asarray(loads_n, dtype=float)
@@ -81,14 +128,15 @@ def build_table(model: FEModel, loads_n: Sequence[float] | None = None, mode: st
         raise ConfigError("--grid", loads.tolist(), "at least two grid points to interpolate between")
     schedule = schedule or replace(DEFAULT_SCHEDULE, mode=mode)
     reduced = reduce(model)
+    total = len(loads) + (len(_plan_loads(loads, schedule)) if check else 0)
     gains = np.zeros((len(loads), 4, 12))
-    table = GainTable(loads_n=loads, gains=gains, c0_phi_inv=reduced.c0_phi_inv, design=design,
-                      schedule=schedule, model_parameters=model.params, tool_version=tool_version())
-    total = len(loads) + (len(check_plan(table)) if check else 0)
     for i, load in enumerate(loads):
         gains[i] = lqr_gain(reduced, load, design.weights)
         if progress:
             progress(i + 1, total, f"LQR {load:7.1f} N")
+    table = GainTable(loads_n=loads, compensator=integral_lqr_compensator(gains, reduced.c0_phi_inv, design),
+                      c0_phi_inv=reduced.c0_phi_inv, design=design, schedule=schedule,
+                      model_parameters=model.params, tool_version=tool_version(), gains=gains)
     if check:
         table = replace(table, checks=closed_loop_checks(model, table, progress, len(loads), total))
         # --force marks a table that is written in spite of an unstable point, nothing else

@@ -70,3 +70,4 @@ def spectral_radius(matrix: np.ndarray) -> tuple[float, np.ndarray]:
     """Largest pole magnitude and the poles."""
     poles = np.linalg.eigvals(matrix)
     return float(np.max(np.abs(poles))), poles
+

@@ -39,11 +39,13 @@ import numpy as np
 
 from beamctl.gains.lqr import Weights
 from beamctl.gains.table import DesignSettings, ScheduleSettings
+from beamctl.models.iochain import IOChain
 
 DEFAULT_WEIGHTS = Weights.from_modes(displacement=(2e10, 3e5), velocity=(5e3, 0.5),
                                      integral=(5e14, 5e14))
-DEFAULT_DESIGN = DesignSettings(sample_rate_hz=2500.0, velocity_cutoff_hz=145.5,
-                                weights=DEFAULT_WEIGHTS)
+# the paper's design; it assumes the voltages reach the stacks within the sample, unfiltered
+DEFAULT_DESIGN = DesignSettings(kind="integral-lqr", sample_rate_hz=2500.0, io=IOChain(),
+                                velocity_cutoff_hz=145.5, weights=DEFAULT_WEIGHTS)
 # load filter: 5 Hz first order (32 ms lag, 1.6 N behind a 50 N/s ramp, load-cell noise
 # divided by ~9); hysteresis of the paper mode: 50 N, far above the filtered noise
 DEFAULT_SCHEDULE = ScheduleSettings(mode="interpolate", load_filter_hz=5.0, hysteresis_n=50.0)

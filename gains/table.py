@@ -1,12 +1,19 @@
 """Gain table files: one YAML file per table, written by ``beamctl gains build`` and read by
 the real-time service.
 
-The file holds the load grid, K per grid point, (C0 Phi)^-1, the sample rate and velocity
-filter the gains were designed for, Q and R, the schedule settings, the model parameters
-with their SHA-256, the closed-loop check, the tool version and the creation time, and a
-SHA-256 over all of it. Loading checks every field; anything wrong is refused with a
-GainTableError naming the field. Numbers are written in Python's shortest round-trip form,
-so a table reads back bit for bit and its content hash is reproducible.
+A table is the compensator the control step runs (gains/compensator.py: per grid load the
+matrices A, B, E, C, D, Ki, with H, the start map and the split of its states between the bending
+planes), over a load grid, with what it was designed as and for (``design``: the kind of design,
+the sample rate, the I/O chain it assumes, and the design's own parameters), (C0 Phi)^-1, the
+schedule settings, the model parameters with their SHA-256, the closed-loop check, the tool
+version and the creation time, and a SHA-256 over all of it. Loading checks every field; anything
+wrong is refused with a GainTableError naming the field. Numbers are written in Python's
+shortest round-trip form, so a table reads back bit for bit and its content hash is reproducible.
+
+Design kinds: ``integral-lqr`` (the paper's: integral LQR gains K [G x 4 x 12] on the modal
+model with a high-pass velocity estimate; the file keeps K, Q, R and the velocity filter's
+cut-off under ``design``) and ``lqg`` (a model-based design; its parameters under
+``design.parameters``, a free mapping).
 
 A table the controller may run has a content hash that matches, a closed-loop check, and
 no unstable point in it (nor ``--force``): ``load_table`` refuses anything else unless
@@ -28,15 +35,25 @@ import numpy as np
 import yaml
 
 from beamctl.config.schema import ConfigError, read_yaml
+from beamctl.gains.compensator import MATRICES, Compensator
 from beamctl.gains.discrete import LoopCheck
 from beamctl.gains.lqr import N_INPUTS, N_STATES, Weights
+from beamctl.models.iochain import IOChain, io_chain
 from beamctl.models.params import ModelParameters, parameters_from_dict
 
-FORMAT = "beamctl-gain-table/2"
+FORMAT = "beamctl-gain-table/3"
 # earlier formats, refused with the reason and what to run
-OLD_FORMATS = {"beamctl-gain-table/1": "carries no SHA-256 of its content"}
+OLD_FORMATS = {
+    "beamctl-gain-table/1": "carries no SHA-256 of its content",
+    "beamctl-gain-table/2": "holds only integral LQR gains, not the compensator matrices the controller "
+                            "now runs",
+}
 CONTENT_HASH = "sha256"
 SCHEDULE_MODES = ("interpolate", "paper")
+DESIGN_KINDS = ("integral-lqr", "lqg")
+# the fields of ``design`` in the file besides kind, sample_rate_hz and io, per kind
+_DESIGN_FIELDS = {"integral-lqr": ("velocity_cutoff_hz", "Q_diagonal", "R_diagonal", "gains"),
+                  "lqg": ("parameters",)}
 
 
 class GainTableError(ConfigError):
@@ -64,11 +81,33 @@ def changed_file_message(path: str | Path) -> str:
 
 @dataclass(frozen=True)
 class DesignSettings:
-    """What the gains were designed for."""
+    """What a table's compensator was designed as and for.
 
+    ``kind``: ``integral-lqr`` (the paper's design; ``velocity_cutoff_hz`` and ``weights`` say
+    how it was made) or ``lqg`` (its own design parameters in ``parameters``: plain data, i.e.
+    numbers, strings, booleans, lists and mappings, written to the file as they are).
+    ``io``: the I/O chain (delay, filters) the design assumes; the closed-loop check uses it.
+    """
+
+    kind: str
     sample_rate_hz: float
-    velocity_cutoff_hz: float
-    weights: Weights
+    io: IOChain = field(default_factory=IOChain)
+    velocity_cutoff_hz: float | None = None      # integral-lqr
+    weights: Weights | None = None               # integral-lqr
+    parameters: Mapping[str, Any] = field(default_factory=dict)   # other kinds
+
+    def __post_init__(self) -> None:
+        if self.kind not in DESIGN_KINDS:
+            raise ValueError(f"design kind {self.kind!r}: expected one of {DESIGN_KINDS}")
+        if self.kind == "integral-lqr":
+            if self.velocity_cutoff_hz is None or self.weights is None:
+                raise ValueError("an integral-lqr design needs velocity_cutoff_hz and weights")
+            if self.parameters:
+                raise ValueError("an integral-lqr design keeps its parameters in velocity_cutoff_hz "
+                                 "and weights, not in parameters")
+        elif self.velocity_cutoff_hz is not None or self.weights is not None:
+            raise ValueError(f"velocity_cutoff_hz and weights belong to integral-lqr designs, not "
+                             f"{self.kind}: put the design's parameters in parameters")
 
 
 @dataclass(frozen=True)
@@ -84,9 +123,17 @@ class ScheduleSettings:
 
 @dataclass(frozen=True)
 class GainTable:
+    """A gain table: the compensator the control step runs, over a load grid, with its design.
+
+    Built by a design (``gains.build.build_table`` for integral-lqr), then checked
+    (``gains.build.closed_loop_checks``, stored with ``dataclasses.replace(table, checks=...)``)
+    and written (``write_table``). ``gains`` is K [G x 4 x 12] of an integral-lqr design (its
+    compensator is ``compensator.from_integral_lqr`` of it) and None for any other kind.
+    """
+
     loads_n: np.ndarray            # [G], strictly increasing
-    gains: np.ndarray              # [G x 4 x 12]
-    c0_phi_inv: np.ndarray         # [4 x 4]
+    compensator: Compensator       # [G x ...] matrices, period 1 / design.sample_rate_hz
+    c0_phi_inv: np.ndarray         # [4 x 4]: q = (C0 Phi)^-1 y, telemetry and monitoring
     design: DesignSettings
     schedule: ScheduleSettings
     model_parameters: ModelParameters
@@ -97,6 +144,23 @@ class GainTable:
         timespec="seconds"))
     # read from a file whose content matches its SHA-256 (a table built in memory: True)
     intact: bool = True
+    gains: np.ndarray | None = None   # K [G x 4 x 12] of an integral-lqr design
+
+    def __post_init__(self) -> None:
+        comp = self.compensator
+        comp.validate_shapes()
+        if comp.n_points != len(self.loads_n):
+            raise ValueError(f"the compensator has {comp.n_points} grid points, the load grid "
+                             f"{len(self.loads_n)}")
+        if not math.isclose(comp.period_s * self.design.sample_rate_hz, 1.0, rel_tol=1e-12):
+            raise ValueError(f"the compensator's period {comp.period_s} s is not 1 / the design's "
+                             f"sample rate {self.design.sample_rate_hz} Hz")
+        if self.design.kind == "integral-lqr":
+            if self.gains is None or self.gains.shape != (len(self.loads_n), N_INPUTS, N_STATES):
+                raise ValueError(f"an integral-lqr table needs its gains K [{len(self.loads_n)} x "
+                                 f"{N_INPUTS} x {N_STATES}]")
+        elif self.gains is not None:
+            raise ValueError(f"gains K belong to integral-lqr tables, not {self.design.kind}")
 
     @property
     def model_sha256(self) -> str:
@@ -118,29 +182,51 @@ class GainTable:
         return {"format": content["format"], CONTENT_HASH: content_sha256(content), **content}
 
     def _content(self) -> dict[str, Any]:
-        w = self.design.weights
+        d, comp = self.design, self.compensator
+        design: dict[str, Any] = {"kind": d.kind, "sample_rate_hz": float(d.sample_rate_hz),
+                                  "io": d.io.to_dict()}
+        if d.kind == "integral-lqr":
+            design.update(velocity_cutoff_hz=float(d.velocity_cutoff_hz),
+                          Q_diagonal=[float(x) for x in d.weights.q],
+                          R_diagonal=[float(x) for x in d.weights.r],
+                          gains=np.asarray(self.gains, dtype=float).tolist())
+        else:
+            design["parameters"] = _plain(d.parameters)
+        compensator = {"plane_states": {p: [int(i) for i in comp.plane_states[p]] for p in ("y", "z")},
+                       "h": np.asarray(comp.h, dtype=float).tolist(),
+                       "start": np.asarray(comp.start, dtype=float).tolist(),
+                       **{m: np.asarray(getattr(comp, m), dtype=float).tolist() for m in MATRICES}}
         return {
             "format": FORMAT,
             "created": self.created,
             "tool_version": self.tool_version,
             "model": {"sha256": self.model_sha256, "parameters": self.model_parameters.to_dict()},
-            "design": {
-                "sample_rate_hz": self.design.sample_rate_hz,
-                "velocity_cutoff_hz": self.design.velocity_cutoff_hz,
-                "Q_diagonal": [float(x) for x in w.q],
-                "R_diagonal": [float(x) for x in w.r],
-            },
+            "design": design,
             "schedule": {"mode": self.schedule.mode, "load_filter_hz": self.schedule.load_filter_hz,
                          "hysteresis_N": self.schedule.hysteresis_n},
             "c0_phi_inv": self.c0_phi_inv.tolist(),
             "loads_N": [float(x) for x in self.loads_n],
-            "gains": [k.tolist() for k in self.gains],
+            "compensator": compensator,
             "check": {
                 "all_stable": self.all_stable,
                 "forced": self.forced,
                 "points": [_check_point(c) for c in self.checks],
             },
         }
+
+
+def _plain(value: Any) -> Any:
+    """Design parameters as plain YAML/JSON data (arrays as nested lists, numpy scalars as
+    Python numbers)."""
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
 
 
 def _check_point(c: LoopCheck) -> dict[str, Any]:
@@ -183,9 +269,10 @@ def write_table(table: GainTable, path: str | Path) -> Path:
                              f"(build with --force to write it anyway, marked as forced)")
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    header = ("# beamctl gain table: integral LQR gains K(Fx) [4 x 12] per axial load.\n"
-              "# Written by `beamctl gains build`; checked on load. Do not edit by hand: the\n"
-              "# SHA-256 of the content would no longer match and `beamctl run` refuses it.\n")
+    header = ("# beamctl gain table: a scheduled state-space compensator over the axial load\n"
+              f"# ({table.design.kind} design). Written by `beamctl gains build`; checked on load.\n"
+              "# Do not edit by hand: the SHA-256 of the content would no longer match and\n"
+              "# `beamctl run` refuses it.\n")
     p.write_text(header + yaml.safe_dump(table.to_dict(), sort_keys=False, width=120))
     return p
 
@@ -264,20 +351,9 @@ def load_table(path: str | Path, model: ModelParameters | None = None, *,
         i = int(np.argmax(np.diff(loads) <= 0))
         raise GainTableError("loads_N", f"{loads[i]} then {loads[i + 1]}",
                              "a strictly increasing load grid", source)
-    gains = _array(data, "gains", (len(loads), N_INPUTS, N_STATES), source)
     c0_phi_inv = _array(data, "c0_phi_inv", (4, 4), source)
-
-    sample_rate = _number(data, "design.sample_rate_hz", source)
-    cutoff = _number(data, "design.velocity_cutoff_hz", source)
-    if cutoff >= sample_rate / 2:
-        raise GainTableError("design.velocity_cutoff_hz", cutoff,
-                             f"a cut-off below the Nyquist frequency {sample_rate / 2:g} Hz", source)
-    q = _array(data, "design.Q_diagonal", (N_STATES,), source)
-    r = _array(data, "design.R_diagonal", (N_INPUTS,), source)
-    if np.any(q < 0):
-        raise GainTableError("design.Q_diagonal", q.tolist(), "non-negative weights", source)
-    if np.any(r <= 0):
-        raise GainTableError("design.R_diagonal", r.tolist(), "positive weights", source)
+    design, gains = _design(data, len(loads), source)
+    compensator = _compensator(data, len(loads), 1.0 / design.sample_rate_hz, source)
 
     mode = _field(data, "schedule.mode", source)
     if mode not in SCHEDULE_MODES:
@@ -329,9 +405,7 @@ def load_table(path: str | Path, model: ModelParameters | None = None, *,
     stored = data.get(CONTENT_HASH)
     content = content_sha256(data)
     table = GainTable(
-        loads_n=loads, gains=gains, c0_phi_inv=c0_phi_inv,
-        design=DesignSettings(sample_rate_hz=sample_rate, velocity_cutoff_hz=cutoff,
-                              weights=Weights(q=tuple(q.tolist()), r=tuple(r.tolist()))),
+        loads_n=loads, compensator=compensator, c0_phi_inv=c0_phi_inv, design=design, gains=gains,
         schedule=ScheduleSettings(mode=mode, load_filter_hz=load_filter, hysteresis_n=hysteresis),
         model_parameters=params, checks=tuple(checks), forced=forced,
         tool_version=str(data.get("tool_version", "")), created=str(data.get("created", "")),
@@ -344,3 +418,66 @@ def load_table(path: str | Path, model: ModelParameters | None = None, *,
                                  f"{changed_file_message(path)}", source)
         require_checked(table, source, rebuild_advice(path))
     return table
+
+
+def _design(data: dict, n_points: int, source: str) -> tuple[DesignSettings, np.ndarray | None]:
+    """The ``design`` section, and K [G x 4 x 12] for an integral-lqr design."""
+    section = _field(data, "design", source)
+    if not isinstance(section, dict):
+        raise GainTableError("design", _short(section), "a mapping", source)
+    kind = _field(data, "design.kind", source)
+    if kind not in DESIGN_KINDS:
+        raise GainTableError("design.kind", kind, f"one of {DESIGN_KINDS}", source)
+    known = ("kind", "sample_rate_hz", "io") + _DESIGN_FIELDS[kind]
+    unknown = sorted(set(section) - set(known))
+    if unknown:
+        raise GainTableError(f"design.{unknown[0]}", _short(section[unknown[0]]),
+                             f"only the fields of a {kind} design: {', '.join(known)}", source)
+    sample_rate = _number(data, "design.sample_rate_hz", source)
+    raw_io = _field(data, "design.io", source)
+    try:
+        io = io_chain(raw_io, source, prefix="design.io")
+    except ConfigError as exc:
+        raise GainTableError(exc.key, exc.value, exc.expected, source) from None
+    if kind != "integral-lqr":
+        parameters = _field(data, "design.parameters", source)
+        if not isinstance(parameters, dict):
+            raise GainTableError("design.parameters", _short(parameters),
+                                 "a mapping of the design's parameters", source)
+        return DesignSettings(kind=kind, sample_rate_hz=sample_rate, io=io, parameters=parameters), None
+    cutoff = _number(data, "design.velocity_cutoff_hz", source)
+    if cutoff >= sample_rate / 2:
+        raise GainTableError("design.velocity_cutoff_hz", cutoff,
+                             f"a cut-off below the Nyquist frequency {sample_rate / 2:g} Hz", source)
+    q = _array(data, "design.Q_diagonal", (N_STATES,), source)
+    r = _array(data, "design.R_diagonal", (N_INPUTS,), source)
+    if np.any(q < 0):
+        raise GainTableError("design.Q_diagonal", q.tolist(), "non-negative weights", source)
+    if np.any(r <= 0):
+        raise GainTableError("design.R_diagonal", r.tolist(), "positive weights", source)
+    gains = _array(data, "design.gains", (n_points, N_INPUTS, N_STATES), source)
+    design = DesignSettings(kind=kind, sample_rate_hz=sample_rate, io=io, velocity_cutoff_hz=cutoff,
+                            weights=Weights(q=tuple(q.tolist()), r=tuple(r.tolist())))
+    return design, gains
+
+
+def _compensator(data: dict, n_points: int, period_s: float, source: str) -> Compensator:
+    """The ``compensator`` section: every matrix's shape follows from the grid and from the
+    number of states n (the rows of ``start``)."""
+    start = _array(data, "compensator.start", (None, 4), source)
+    n = start.shape[0]
+    if n == 0:
+        raise GainTableError("compensator.start", [], "at least one compensator state", source)
+    shapes = {"a": (n, n), "b": (n, 4), "e": (n, 4), "c": (4, n), "d": (4, 4), "ki": (4, 4)}
+    matrices = {m: _array(data, f"compensator.{m}", (n_points, *shapes[m]), source) for m in MATRICES}
+    h = _array(data, "compensator.h", (4, 4), source)
+    raw = _field(data, "compensator.plane_states", source)
+    expected = f"a mapping y: [...], z: [...] that splits the states 0..{n - 1} between the planes"
+    if not isinstance(raw, dict) or set(raw) != {"y", "z"} or not all(
+            isinstance(v, list) and all(isinstance(i, int) and not isinstance(i, bool) for i in v)
+            for v in raw.values()):
+        raise GainTableError("compensator.plane_states", _short(raw), expected, source)
+    if sorted(raw["y"] + raw["z"]) != list(range(n)):
+        raise GainTableError("compensator.plane_states", _short(raw), expected, source)
+    return Compensator(**matrices, h=h, start=start, period_s=period_s,
+                       plane_states={"y": list(raw["y"]), "z": list(raw["z"])})

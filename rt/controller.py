@@ -1,47 +1,54 @@
-"""The control step: what the dSPACE system did each sample (section 4 of the paper).
+"""The control step: one controller form for every design, a scheduled discrete state-space
+compensator with integral action (gains/compensator.py), run each sample as the dSPACE system
+ran the paper's controller (section 4).
 
 Per sample, in this order:
-1. q = (C0 Phi)^-1 y (eq. 30);
-2. modal velocities: first-order Butterworth high-pass of q (designed once with
-   scipy.signal.butter), scaled by its cut-off angular frequency;
-3. discrete integrator xi += T q (eq. 21); with anti-windup, an increment that would push
+1. q = (C0 Phi)^-1 y (eq. 30), for telemetry and the operator (the law reads y itself);
+2. integral action xi += T H y; with anti-windup, an increment whose effect -Ki dxi would push
    a saturated support further along its demanded force is skipped;
-4. K(Fx) from the schedule (load-cell value); u = -K [q, dq/dt, xi] (eq. 27);
-5. allocation to the six stack voltages (rt.allocation);
-6. safety: input checks before 1, saturation after 5, and the voltage ramps of the lifecycle.
+3. the law u = -(C x_c + D y) - Ki xi at the filtered load (the schedule's product);
+4. allocation to the six stack voltages (rt.allocation), faded in from bias after a start;
+5. the lateral forces those voltages produce, u_applied = M (V - V_bias), and the compensator's
+   next state x_c = A x_c + B y + E u_applied (so an estimator sees the force the stacks give,
+   saturated or not);
+6. safety (rt.safety): input checks before 1, saturation after 4, and the ramps of the lifecycle.
 
-Every quantity lives in one preallocated record (``RECORD_COLUMNS``); the step only runs
-numpy calls with ``out=`` and scalar arithmetic on precomputed data, and the record is also
-what telemetry stores.
+The compensator starts at rest on the sample it starts on, x_c = start y (bumpless: for the
+paper's design the velocity estimate starts at zero). Every quantity the telemetry stores lives
+in one preallocated record (``RECORD_COLUMNS``); the step only runs numpy calls with ``out=``
+and scalar arithmetic on precomputed data.
 """
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-from beamctl.gains.discrete import velocity_filter
 from beamctl.gains.schedule import GainSchedule
 from beamctl.gains.table import GainTable
 from beamctl.hal.base import Sample
 from beamctl.rt.allocation import Allocator
 from beamctl.rt.config import ControllerConfig
-from beamctl.rt.safety import Fault, State, Supervisor, TransitionError
+from beamctl.rt.safety import Fault, Safety, State, TransitionError
 
+# The compensator's signals y, xi and u_applied (gains/schedule.py) are the record's last twelve
+# columns, and its state x_c follows them in the same buffer, past the record: the schedule's
+# products read the signal vector [y; xi; u_applied; x_c] where the telemetry stores it.
+SIGNAL_COLUMNS = ([f"strain_{c}" for c in ("y1", "z1", "y2", "z2")]
+                  + [f"xi_{m}" for m in ("1y", "1z", "2y", "2z")]
+                  + ["applied_force_y_A_N", "applied_force_z_A_N", "applied_force_y_B_N",
+                     "applied_force_z_B_N"])
 RECORD_COLUMNS = (
     ["time_s", "sequence", "state", "fault", "flags"]
-    + [f"strain_{c}" for c in ("y1", "z1", "y2", "z2")]
     + ["load_N", "load_filtered_N"]
     + [f"q_{m}" for m in ("1y", "1z", "2y", "2z")]
-    + [f"qdot_{m}" for m in ("1y", "1z", "2y", "2z")]
-    + [f"xi_{m}" for m in ("1y", "1z", "2y", "2z")]
     + ["force_y_A_N", "force_z_A_N", "force_y_B_N", "force_z_B_N"]
     + [f"voltage_{s}_V" for s in ("a1", "a2", "a3", "b1", "b2", "b3")]
     + ["scale_A", "scale_B", "step_us"]
+    + SIGNAL_COLUMNS
 )
 COL = {name: i for i, name in enumerate(RECORD_COLUMNS)}
 N_COLUMNS = len(RECORD_COLUMNS)
+I_SIGNALS = N_COLUMNS - len(SIGNAL_COLUMNS)
 # indices used in the step (integers decided here, not looked up by name in the loop)
 I_TIME, I_SEQUENCE, I_STATE, I_FAULT, I_FLAGS = (COL[n] for n in ("time_s", "sequence", "state",
                                                                   "fault", "flags"))
@@ -59,15 +66,15 @@ FLAG_RAMPING_TO_BIAS = 64
 
 
 class Controller:
-    """The integral LQR of a gain table with its estimator, allocation and supervisor.
+    """The compensator of a gain table with its allocation and safety.
 
     In every state but RUNNING the stacks are not controlled, yet q is still estimated from
     each sample (telemetry, monitoring an uncontrolled beam).
 
     Lifecycle: ``arm(sample)`` (stacks at bias), ``start()`` (bumpless: integrator zero,
-    voltages faded in from bias), ``step(sample)`` once per sample (``step(None)`` when the
-    sample is missing: the voltages hold until the stale-input fault), ``fault(...)``,
-    ``request_stop()``, ``rearm()``.
+    compensator at rest on the current sample, voltages faded in from bias), ``step(sample)``
+    once per sample (``step(None)`` when the sample is missing: the voltages hold until the
+    stale-input fault), ``fault(...)``, ``request_stop()``, ``rearm()``.
     """
 
     def __init__(self, table: GainTable, config: ControllerConfig) -> None:
@@ -75,56 +82,41 @@ class Controller:
         self.config = config
         self.sample_rate_hz = table.design.sample_rate_hz
         self.period = 1.0 / self.sample_rate_hz
-        filt = velocity_filter(table.design.velocity_cutoff_hz, self.sample_rate_hz)
-        self.filter = filt
-        self.supervisor = Supervisor()
-        self.schedule = GainSchedule(table)
+        self.schedule = GainSchedule.from_table(table)
         self.allocator = Allocator(config.actuators)
+        comp = table.compensator
+        n = comp.n_states
 
-        r = np.zeros(N_COLUMNS)
+        buffer = np.zeros(N_COLUMNS + n)
+        r = buffer[:N_COLUMNS]
         self.record = r
-        self.strains = r[COL["strain_y1"]:COL["strain_y1"] + 4]
         self.q = r[COL["q_1y"]:COL["q_1y"] + 4]
-        self.qdot = r[COL["qdot_1y"]:COL["qdot_1y"] + 4]
-        self.xi = r[COL["xi_1y"]:COL["xi_1y"] + 4]
-        self.x = r[COL["q_1y"]:COL["q_1y"] + 12]           # [q, qdot, xi], eq. (22)
-        self.q_qdot = r[COL["q_1y"]:COL["q_1y"] + 8]
         self.u = r[COL["force_y_A_N"]:COL["force_y_A_N"] + 4]
         self.voltages = r[COL["voltage_a1_V"]:COL["voltage_a1_V"] + 6]
-
+        # the compensator's signal vector s = [y; xi; u_applied; x_c]: the record's last columns
+        # and the state after them
+        self._signals = buffer[I_SIGNALS:]
+        self.strains = r[COL["strain_y1"]:COL["strain_y1"] + 4]
+        self.xi = r[COL["xi_1y"]:COL["xi_1y"] + 4]
+        self.applied_forces = r[COL["applied_force_y_A_N"]:COL["applied_force_y_A_N"] + 4]
+        self.compensator_state = buffer[N_COLUMNS:]
         self._c0_phi_inv = np.ascontiguousarray(table.c0_phi_inv)
-        self._hp_b0 = filt.scale * filt.b0
-        # [q; omega_c b0 q] = [Ti; omega_c b0 Ti] y in one product
-        self._estimate = np.vstack([self._c0_phi_inv, self._hp_b0 * self._c0_phi_inv])
-        # filter state scaled by omega_c: s' <- omega_c b1 q - a1 qdot
-        self._hp_update = np.hstack([filt.scale * filt.b1 * np.eye(4), -filt.a1 * np.eye(4)])
-        self._hp_state = np.zeros(4)
+        self._integral_map = np.ascontiguousarray(self.period * comp.h)      # T H
+        self._start_map = np.ascontiguousarray(comp.start)
+        self._force_matrix = np.ascontiguousarray(self.allocator.geometry.force_matrix())
         self._dxi = np.zeros(4)
-        # -[K_i; dK/dFx_i] per grid interval: u = a[:4] + offset a[4:] with a = block x
-        blocks = -np.concatenate([table.gains, self.schedule.slopes], axis=1)
-        self._blocks = [np.ascontiguousarray(b) for b in blocks]
-        self._blocks_integral = [np.ascontiguousarray(b[:, 8:12]) for b in blocks]
-        self._a = np.zeros(8)
-        self._a_gain, self._a_slope = self._a[:4], self._a[4:]
         self._du = np.zeros(4)
+        self._dv = np.zeros(6)
         self._target = np.zeros(6)                            # voltages from the allocation
-        self._ramp_from = np.zeros(6)
         self._bias = np.full(6, config.actuators.bias_voltage)
 
-        params = table.model_parameters
-        self.strain_limit = (config.safety.strain_limit_fraction * params.beam.proportional_limit
-                             / params.beam.youngs_modulus)
-        self._load_low = max(config.safety.load_range[0], -math.inf)
-        self._load_high = config.safety.load_range[1]
+        beam = table.model_parameters.beam
+        self.safety = Safety(config.safety, beam.proportional_limit / beam.youngs_modulus,
+                             config.actuators.bias_voltage, self.sample_rate_hz, self.voltages)
+        self.supervisor = self.safety.supervisor
         self._anti_windup = config.anti_windup
         self._start_samples = max(1, round(config.start_ramp_time * self.sample_rate_hz))
-        self._ramp_samples = max(1, round(config.safety.ramp_time * self.sample_rate_hz))
-        self._saturation_limit = max(1, round(config.safety.saturation_time * self.sample_rate_hz))
-        self._stale_limit = config.safety.stale_periods
         self._steps_since_start = 0
-        self._ramp_step = 0
-        self._saturated_samples = 0
-        self._missing = 0
         self.voltages[:] = self._bias
 
     # -- lifecycle -----------------------------------------------------------------------------
@@ -147,46 +139,37 @@ class Controller:
 
     def _clear(self, sample: Sample | None) -> None:
         self.xi[:] = 0.0
-        self.qdot[:] = 0.0
+        self.compensator_state[:] = 0.0
         self.voltages[:] = self._bias
-        self._ramp_step = 0
-        self._saturated_samples = 0
-        self._missing = 0
+        self.applied_forces[:] = 0.0
+        self.safety.clear()
         self.allocator.scale_a = self.allocator.scale_b = 1.0
         if sample is not None:
             self.schedule.reset(sample.axial_load)
-            np.dot(self._c0_phi_inv, sample.strains, out=self.q)
+            self.strains[:] = sample.strains
+            np.dot(self._c0_phi_inv, self.strains, out=self.q)
 
     def start(self) -> None:
-        """Start controlling from the latest sample: integrator at zero, the velocity filter
-        at rest on the current q (no kick however long the controller sat armed), voltages
-        faded in from bias. A start on a non-finite strain faults at once."""
+        """Start controlling from the latest sample: integrator at zero, the compensator at
+        rest on that sample (no kick however long the controller sat armed), voltages faded in
+        from bias. A start on a non-finite strain faults at once."""
         self.supervisor.start()
         self._steps_since_start = 0
         self.xi[:] = 0.0
-        if not np.all(np.isfinite(self.q)):
+        if not np.all(np.isfinite(self.strains)):
             self.q[:] = 0.0
-            self._hp_state[:] = 0.0
+            self.compensator_state[:] = 0.0
             self.fault(Fault.STRAIN_NOT_FINITE, "non-finite strain when starting")
             return
-        np.multiply(self.q, -self._hp_b0, out=self._hp_state)
+        np.dot(self._start_map, self.strains, out=self.compensator_state)
 
     def request_stop(self) -> None:
         """Ramp to bias and stop (SIGINT/SIGTERM, end of run)."""
-        if self.supervisor.state in (State.RUNNING, State.ARMED, State.INIT):
-            self._begin_ramp()
-        self.supervisor.request_stop()
+        self.safety.request_stop()
 
     def fault(self, fault: Fault, detail: str = "") -> None:
         """Latch ``fault`` (first one wins) and ramp the voltages to bias."""
-        was = self.supervisor.state
-        if self.supervisor.trip(fault, detail, float(self.record[I_TIME])):
-            if was != State.STOPPING:
-                self._begin_ramp()
-
-    def _begin_ramp(self) -> None:
-        self._ramp_from[:] = self.voltages
-        self._ramp_step = 0
+        self.safety.trip(fault, detail)
 
     # -- the step ---------------------------------------------------------------------------------
     def step(self, sample: Sample | None) -> np.ndarray:
@@ -194,19 +177,18 @@ class Controller:
         voltages to write (the controller's own array)."""
         r = self.record
         r[I_FLAGS] = 0.0
+        safety = self.safety
         if sample is None:
-            self._missing += 1
             r[I_FLAGS] = FLAG_NO_NEW_SAMPLE
-            if self._missing >= self._stale_limit and self.supervisor.state == State.RUNNING:
-                self.fault(Fault.STALE_INPUT, f"{self._missing} periods without a sample")
+            safety.sample_missing()
         else:
-            self._missing = 0
+            safety.sample_arrived(sample.timestamp)
             r[I_TIME] = sample.timestamp
             r[I_SEQUENCE] = sample.sequence
             self.strains[:] = sample.strains
             r[I_LOAD] = sample.axial_load
             if self.supervisor.state == State.RUNNING:
-                self._check_inputs(sample)
+                safety.check_inputs(self.strains, sample.axial_load)
         state = self.supervisor.state
         if state == State.RUNNING:
             if sample is not None:      # no new sample: the voltages hold, the law waits
@@ -216,32 +198,15 @@ class Controller:
                 np.dot(self._c0_phi_inv, self.strains, out=self.q)
             if state in (State.FAULT, State.STOPPING):
                 self._ramp()
+            self._take_applied_forces()
         r[I_STATE] = self.supervisor.state
         r[I_FAULT] = self.supervisor.fault
         return self.voltages
 
-    def _check_inputs(self, sample: Sample) -> None:
-        limit = self.strain_limit
-        for i in range(4):
-            e = self.strains[i]
-            if not abs(e) <= limit:
-                if e != e or abs(e) == math.inf:
-                    self.fault(Fault.STRAIN_NOT_FINITE, f"strain {i} = {e}")
-                else:
-                    self.fault(Fault.STRAIN_OUT_OF_RANGE, f"strain {i} = {e:.3g}, limit {limit:.3g}")
-                return
-        load = sample.axial_load
-        if not self._load_low <= load <= self._load_high:
-            if load != load or abs(load) == math.inf:
-                self.fault(Fault.LOAD_NOT_FINITE, f"load = {load}")
-            else:
-                self.fault(Fault.LOAD_OUT_OF_SENSOR_RANGE,
-                           f"load = {load:.1f} N, range [{self._load_low:g}, {self._load_high:g}] N")
-
     def _control(self) -> None:
         r = self.record
         schedule = self.schedule
-        schedule.locate(r[I_LOAD])
+        schedule.follow(r[I_LOAD])
         r[I_LOAD_FILTERED] = schedule.filtered_load_n
         if schedule.out_of_range:
             r[I_FLAGS] += FLAG_LOAD_OUT_OF_TABLE
@@ -249,20 +214,15 @@ class Controller:
                        f"filtered load {schedule.filtered_load_n:.1f} N outside the table's "
                        f"[{self.table.loads_n[0]:g}, {self.table.loads_n[-1]:g}] N")
             self._ramp()
+            self._take_applied_forces()
             return
-        index, offset = schedule.index, schedule.offset_n
-        # 1. q = (C0 Phi)^-1 y (eq. 30) and 2. qdot = omega_c (b0 q + s)
-        np.dot(self._estimate, self.strains, out=self.q_qdot)
-        self.qdot += self._hp_state
-        np.dot(self._hp_update, self.q_qdot, out=self._hp_state)
-        # 3. integrator with anti-windup
-        np.multiply(self.q, self.period, out=self._dxi)
+        # 1. q = (C0 Phi)^-1 y (eq. 30), for telemetry
+        np.dot(self._c0_phi_inv, self.strains, out=self.q)
+        # 2. integral action with anti-windup
+        np.dot(self._integral_map, self.strains, out=self._dxi)
         alloc = self.allocator
         if self._anti_windup and (alloc.scale_a < 1.0 or alloc.scale_b < 1.0):
-            # change of u the increment would cause: -K_int dxi
-            np.dot(self._blocks_integral[index], self._dxi, out=self._a)
-            np.multiply(self._a_slope, offset, out=self._a_slope)
-            np.add(self._a_gain, self._a_slope, out=self._du)
+            schedule.integral_effect(self._dxi, self._du)       # -Ki dxi: what the increment does
             u, du = self.u, self._du
             winds = ((alloc.scale_a < 1.0 and du[0] * u[0] + du[1] * u[1] > 0.0)
                      or (alloc.scale_b < 1.0 and du[2] * u[2] + du[3] * u[3] > 0.0))
@@ -272,14 +232,9 @@ class Controller:
                 self.xi += self._dxi
         else:
             self.xi += self._dxi
-        # 4. u = -K(Fx) x (eq. 27), K interpolated without forming it
-        np.dot(self._blocks[index], self.x, out=self._a)
-        if offset == 0.0:
-            self.u[:] = self._a_gain
-        else:
-            np.multiply(self._a_slope, offset, out=self._a_slope)
-            np.add(self._a_gain, self._a_slope, out=self.u)
-        # 5. allocation
+        # 3. u = -(C x_c + D y) - Ki xi at the filtered load
+        schedule.output(self._signals, self.u)
+        # 4. allocation, and the bumpless start: voltages faded in from bias
         alloc.allocate(self.u, self._target)
         r[I_SCALE_A] = alloc.scale_a
         r[I_SCALE_B] = alloc.scale_b
@@ -287,7 +242,6 @@ class Controller:
             r[I_FLAGS] += FLAG_SATURATED_A
         if alloc.scale_b < 1.0:
             r[I_FLAGS] += FLAG_SATURATED_B
-        # 6. bumpless start: fade the voltages in from bias
         self._steps_since_start += 1
         if self._steps_since_start < self._start_samples:
             r[I_FLAGS] += FLAG_FADING_IN
@@ -297,28 +251,21 @@ class Controller:
             self.voltages += self._bias
         else:
             self.voltages[:] = self._target
-        if alloc.scale_a < 1.0 or alloc.scale_b < 1.0:
-            self._saturated_samples += 1
-            if self._saturated_samples >= self._saturation_limit:
-                self.fault(Fault.PERSISTENT_SATURATION,
-                           f"saturated for {self._saturated_samples} samples")
-        else:
-            self._saturated_samples = 0
+        # 5. the forces these voltages produce, and the compensator's next state
+        self._take_applied_forces()
+        schedule.update(self._signals, self.compensator_state)
+        self.safety.saturation(alloc.scale_a < 1.0 or alloc.scale_b < 1.0)
+
+    def _take_applied_forces(self) -> None:
+        """u_applied = M (V - V_bias): the lateral forces the voltages about to be written give,
+        with the controller's own stack geometry."""
+        np.subtract(self.voltages, self._bias, out=self._dv)
+        np.dot(self._force_matrix, self._dv, out=self.applied_forces)
 
     def _ramp(self) -> None:
-        """Linear ramp from the voltages at the fault/stop to bias; then hold bias."""
         self.record[I_FLAGS] += FLAG_RAMPING_TO_BIAS
-        if self._ramp_step < self._ramp_samples:
-            self._ramp_step += 1
-            remaining = 1.0 - self._ramp_step / self._ramp_samples
-            np.subtract(self._ramp_from, self._bias, out=self.voltages)
-            self.voltages *= remaining
-            self.voltages += self._bias
-        else:
-            self.voltages[:] = self._bias
-            if self.supervisor.state == State.STOPPING:
-                self.supervisor.stopped()
+        self.safety.ramp_step()
 
     @property
     def at_bias(self) -> bool:
-        return bool(np.all(self.voltages == self._bias))
+        return self.safety.at_bias

@@ -4,7 +4,7 @@ Pacing:
 - ``timer``: absolute deadlines t0 + k T on the monotonic clock; sleep until ``spin_time``
   before the deadline, then spin. After an overrun the loop skips ahead to the next deadline
   in the future and counts the missed periods (as ros2_control does), never running a burst
-  of catch-up cycles. A streak of overruns is a fault.
+  of catch-up cycles. A streak of overruns is a fault (rt.safety counts it).
 - ``sample``: one step per new sample from the HAL, so a DAQ streaming at its own clock (or
   a simulated plant in simulated time) sets the rate. Each sample is answered by exactly one
   write; a read time-out writes only while the voltages ramp to bias (an unchanged answer
@@ -74,7 +74,6 @@ class ControlLoop:
         self.cycles = 0
         self._stop_signal = ""
         self._signal_received = ""
-        self._overrun_limit = controller.config.safety.overrun_streak
 
     # -- stopping ---------------------------------------------------------------------------------
     def request_stop(self, why: str = "request") -> None:
@@ -119,9 +118,10 @@ class ControlLoop:
         if self.telemetry is not None:
             tel = {"path": str(self.telemetry.path), "written": self.telemetry.written,
                    "dropped": self.telemetry.dropped}
+        timing = {**self.timing.summary(), "max_overrun_streak": c.safety.max_overrun_streak}
         return RunResult(state=c.state.name, fault=c.supervisor.fault.name, reason=c.supervisor.reason(),
                          cycles=self.cycles, stop_requested_by=self._stop_signal,
-                         timing=self.timing.summary(), telemetry=tel, realtime=rt_report,
+                         timing=timing, telemetry=tel, realtime=rt_report,
                          hal=self.hal.status(), signal_received=self._signal_received)
 
     def _arm(self) -> None:
@@ -143,14 +143,14 @@ class ControlLoop:
 
     def _emergency_ramp(self) -> None:
         """An unexpected error left the loop: bring the stacks from the last voltages to bias
-        along the configured ramp, writing directly to the HAL, before the error propagates."""
+        along the safety's ramp, writing each step directly to the HAL, before the error
+        propagates."""
         c = self.controller
-        bias = c.config.actuators.bias_voltage
-        start = c.voltages.copy()
-        steps = max(1, round(c.config.safety.ramp_time * c.sample_rate_hz))
-        for k in range(1, steps + 1):
+        ramp = c.safety.ramp
+        ramp.begin(c.voltages)
+        while not ramp.advance(c.voltages):
             try:
-                self.hal.write(bias + (start - bias) * (1.0 - k / steps))
+                self.hal.write(c.voltages)
             except Exception:   # the HAL is gone too: nothing more can be sent
                 return
             time.sleep(self.period)
@@ -225,15 +225,12 @@ class ControlLoop:
             if now > next_deadline:
                 # overrun: skip to the first deadline still ahead, count what was missed
                 timing.overruns += 1
-                timing.overrun_streak += 1
-                timing.max_overrun_streak = max(timing.max_overrun_streak, timing.overrun_streak)
                 missed = int((now - next_deadline) / period) + 1
                 timing.missed_periods += missed
                 next_deadline += missed * period
-                if timing.overrun_streak >= self._overrun_limit:
-                    c.fault(Fault.OVERRUN_STREAK, f"{timing.overrun_streak} overruns in a row")
+                c.safety.cycle_overran()
             else:
-                timing.overrun_streak = 0
+                c.safety.cycle_on_time()
             remaining = next_deadline - self.spin_time - clock()
             if remaining > 0:
                 self.sleep(remaining)

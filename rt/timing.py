@@ -55,7 +55,8 @@ class StageTimer:
 
 
 class LoopTiming:
-    """The stages of one cycle plus overrun accounting."""
+    """The stages of one cycle plus the count of overruns and the periods they skipped (the
+    streak that faults is counted by rt.safety)."""
 
     STAGES = ("read", "compute", "write", "cycle")
 
@@ -66,11 +67,8 @@ class LoopTiming:
         self.cycle = StageTimer("cycle")
         self.overruns = 0          # cycles that ended after their deadline
         self.missed_periods = 0    # periods skipped after overruns
-        self.overrun_streak = 0
-        self.max_overrun_streak = 0
 
     def summary(self) -> dict:
         out = {name: getattr(self, name).summary() for name in self.STAGES}
-        out.update(overruns=self.overruns, missed_periods=self.missed_periods,
-                   max_overrun_streak=self.max_overrun_streak)
+        out.update(overruns=self.overruns, missed_periods=self.missed_periods)
         return out

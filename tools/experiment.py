@@ -146,15 +146,16 @@ def paper_table(cfg: ServiceConfig) -> GainTable:
 
 def design_label(table: GainTable | None) -> str:
     """The controller design a run used, in words, for the report (``None``: the uncontrolled
-    run). Today's tables hold integral LQR gains designed for the beam sampled directly (no
-    transport delay, no filters), so that is what the label says of the I/O chain."""
+    run): the table's design kind, rate, grid and schedule, and the I/O chain it assumes."""
     if table is None:
         return "none (controller armed, stacks at bias)"
     d, s = table.design, table.schedule
     schedule = "interpolated" if s.mode == "interpolate" else "switched (paper)"
-    return (f"integral LQR, {d.sample_rate_hz:g} Hz, velocity filter {d.velocity_cutoff_hz:g} Hz, "
-            f"gains at {len(table.loads_n)} loads {table.loads_n[0]:g}..{table.loads_n[-1]:g} N "
-            f"{schedule}; assumes a direct I/O chain")
+    kind = (f"integral LQR, {d.sample_rate_hz:g} Hz, velocity filter {d.velocity_cutoff_hz:g} Hz"
+            if d.kind == "integral-lqr" else f"{d.kind}, {d.sample_rate_hz:g} Hz")
+    chain = "a direct I/O chain" if d.io.is_direct else f"the I/O chain: {d.io.describe()}"
+    return (f"{kind}, gains at {len(table.loads_n)} loads {table.loads_n[0]:g}..{table.loads_n[-1]:g} N "
+            f"{schedule}; assumes {chain}")
 
 
 def experiment_tables(cfg: ServiceConfig, settings: dict) -> dict[str, GainTable]:

@@ -34,7 +34,7 @@ def parse_grid(text: str) -> np.ndarray:
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("gains", help="integral LQR gain tables: build, check, show")
+    p = sub.add_parser("gains", help="gain tables (scheduled compensators): build, check, show")
     gsub = p.add_subparsers(dest="gains_command", metavar="ACTION", required=True)
 
     b = gsub.add_parser("build", help="design K(Fx) over a load grid and check the closed loop")
@@ -131,25 +131,38 @@ def run_show(args: argparse.Namespace) -> int:
     plot_dir = check_dir(args.plot, "--plot") if args.plot else None
     table = _load(args.file, "show")
     d, s = table.design, table.schedule
+    comp = table.compensator
     print(f"gain table: {args.file or default_table_path()}")
     print(f"created {table.created} by beamctl {table.tool_version}; "
           f"model sha256 {table.model_sha256[:16]}...")
-    print(f"designed for {d.sample_rate_hz:g} Hz, velocity filter cut-off {d.velocity_cutoff_hz:g} Hz; "
-          f"schedule {s.mode}, load filter {s.load_filter_hz:g} Hz, hysteresis {s.hysteresis_n:g} N")
-    print(f"Q diagonal {', '.join(f'{x:.3g}' for x in d.weights.q)}")
-    print(f"R diagonal {', '.join(f'{x:.3g}' for x in d.weights.r)}")
+    print(f"design {d.kind} for {d.sample_rate_hz:g} Hz, assuming the I/O chain: {d.io.describe()}")
+    print(f"compensator: {comp.n_states} states over {comp.n_points} grid points; schedule {s.mode}, "
+          f"load filter {s.load_filter_hz:g} Hz, hysteresis {s.hysteresis_n:g} N")
+    if d.kind == "integral-lqr":
+        print(f"velocity filter cut-off {d.velocity_cutoff_hz:g} Hz")
+        print(f"Q diagonal {', '.join(f'{x:.3g}' for x in d.weights.q)}")
+        print(f"R diagonal {', '.join(f'{x:.3g}' for x in d.weights.r)}")
+    else:
+        print(f"design parameters: {json.dumps(d.parameters, sort_keys=True)}")
     check = "all stable" if table.all_stable else "UNSTABLE points" if table.checked else "none"
     recorded = " (as recorded before the change)" if not table.intact else ""
     print(f"check{recorded}: {check}{' (forced)' if table.forced else ''}")
     print(f"content sha256: {'matches' if table.intact else 'DOES NOT MATCH (changed after it was built)'}")
     print()
-    print("gains of support A, y direction (row Fay,A), by state:")
-    names = ["q1y", "q2y", "dq1y", "dq2y", "iq1y", "iq2y"]
-    cols = [0, 2, 4, 6, 8, 10]
-    print(f"{'load N':>8} " + " ".join(f"{n:>11}" for n in names))
     step = max(1, len(table.loads_n) // 16)
+    if table.gains is not None:
+        print("gains of support A, y direction (row Fay,A), by state:")
+        names = ["q1y", "q2y", "dq1y", "dq2y", "iq1y", "iq2y"]
+        cols = [0, 2, 4, 6, 8, 10]
+        rows = table.gains[:, 0, :]
+    else:
+        print("compensator gains of support A, y direction (row Fay,A): D and Ki, by gauge channel:")
+        names = ["D y1", "D y2", "Ki y1", "Ki y2"]
+        cols = [0, 2, 4, 6]
+        rows = np.concatenate([comp.d[:, 0, :], comp.ki[:, 0, :]], axis=1)
+    print(f"{'load N':>8} " + " ".join(f"{n:>11}" for n in names))
     for i in range(0, len(table.loads_n), step):
-        print(f"{table.loads_n[i]:8.0f} " + " ".join(f"{table.gains[i, 0, c]:11.4g}" for c in cols))
+        print(f"{table.loads_n[i]:8.0f} " + " ".join(f"{rows[i, c]:11.4g}" for c in cols))
     if plot_dir:
         from beamctl.tools import plots
 

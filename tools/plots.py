@@ -97,22 +97,34 @@ def frequency_response_full_vs_reduced(model: FEModel, reduced: ModalModel, axia
 
 
 def gains_vs_load(table, path: Path) -> Path:
-    """|K| versus axial load for support A, y direction, one curve per state."""
+    """Gains versus axial load for support A, y direction: |K| per state of an integral-lqr
+    table, else the compensator's |D| and |Ki| per gauge channel."""
     plt = _pyplot()
-    names = {0: "q1y", 2: "q2y", 4: "dq1y/dt", 6: "dq2y/dt", 8: "int q1y", 10: "int q2y"}
     fig, axes = plt.subplots(1, 3, figsize=(12, 4), sharex=True)
-    groups = [("displacement gains (N per modal unit)", (0, 2)),
-              ("velocity gains (N s per modal unit)", (4, 6)),
-              ("integral gains (N per modal unit s)", (8, 10))]
-    for ax, (title, cols) in zip(axes, groups, strict=True):
+    if table.gains is not None:
+        names = {0: "q1y", 2: "q2y", 4: "dq1y/dt", 6: "dq2y/dt", 8: "int q1y", 10: "int q2y"}
+        rows = table.gains[:, 0, :]
+        groups = [("displacement gains (N per modal unit)", (0, 2)),
+                  ("velocity gains (N s per modal unit)", (4, 6)),
+                  ("integral gains (N per modal unit s)", (8, 10))]
+        ylabel, title = "|K| (row Fay,A)", "Integral LQR gains K(Fx)"
+    else:
+        comp = table.compensator
+        names = {0: "D y1", 1: "D y2", 2: "Ki y1", 3: "Ki y2", 4: "sum |C|"}
+        rows = np.column_stack([comp.d[:, 0, 0], comp.d[:, 0, 2], comp.ki[:, 0, 0], comp.ki[:, 0, 2],
+                                np.abs(comp.c[:, 0, :]).sum(axis=1)])
+        groups = [("direct gains D (N per strain)", (0, 1)), ("integral gains Ki (N per unit of xi)", (2, 3)),
+                  ("state gains, sum of |C| (N per state unit)", (4,))]
+        ylabel, title = "row Fay,A", f"Compensator gains ({table.design.kind})"
+    for ax, (group_title, cols) in zip(axes, groups, strict=True):
         for c in cols:
             style = "o-" if table.schedule.mode == "paper" else "-"
-            ax.semilogy(table.loads_n, np.abs(table.gains[:, 0, c]), style, ms=3, label=names[c])
-        ax.set_title(title, fontsize=9)
+            ax.semilogy(table.loads_n, np.abs(rows[:, c]), style, ms=3, label=names[c])
+        ax.set_title(group_title, fontsize=9)
         ax.set_xlabel("axial load Fx in N")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
-    axes[0].set_ylabel("|K| (row Fay,A)")
+    axes[0].set_ylabel(ylabel)
     fcr = None
     try:
         from beamctl.models import build_model, critical_load
@@ -123,8 +135,8 @@ def gains_vs_load(table, path: Path) -> Path:
     if fcr:
         for ax in axes:
             ax.axvline(fcr, color="0.5", lw=0.8, ls="--")
-    fig.suptitle(f"Integral LQR gains K(Fx), {table.schedule.mode} schedule "
-                 f"(dashed: critical load {fcr:.0f} N)" if fcr else "Integral LQR gains K(Fx)")
+    fig.suptitle(f"{title}, {table.schedule.mode} schedule (dashed: critical load {fcr:.0f} N)"
+                 if fcr else title)
     fig.tight_layout()
     return _save(fig, path)
 

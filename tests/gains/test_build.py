@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from beamctl.gains.build import build_table, check_plan, check_points
-from beamctl.gains.discrete import check_load, velocity_filter
+from beamctl.gains.build import build_table, check_load, check_plan, check_points
+from beamctl.gains.compensator import MATRICES
 from beamctl.gains.schedule import GainSchedule
 
 
@@ -24,14 +24,18 @@ def test_paper_switching_is_checked_at_the_ends_of_each_gain_s_hysteresis_band(p
     assert paper_table.all_stable and not paper_table.forced
 
 
-def test_each_check_uses_the_gain_it_names(paper_model, paper_table):
-    filt = velocity_filter(paper_table.design.velocity_cutoff_hz, paper_table.design.sample_rate_hz)
-    for load, gain_load, gain in check_plan(paper_table):
-        expected = (GainSchedule(paper_table).gain_at(load) if gain_load is None
-                    else paper_table.gains[list(paper_table.loads_n).index(gain_load)])
-        np.testing.assert_array_equal(gain, expected, err_msg=f"check at {load} N")
+def test_each_check_uses_the_matrices_it_names(paper_model, paper_table):
+    """Where the schedule settles, the check takes the schedule's own matrices_at; at a band
+    end, the matrices of the grid point it names."""
+    schedule = GainSchedule.from_table(paper_table)
+    for load, gain_load, point in check_plan(paper_table):
+        expected = (schedule.matrices_at(load) if gain_load is None
+                    else paper_table.compensator.point(list(paper_table.loads_n).index(gain_load)))
+        for m in MATRICES:
+            np.testing.assert_array_equal(getattr(point, m), getattr(expected, m),
+                                          err_msg=f"{m} of the check at {load} N")
     c = next(c for c in paper_table.checks if c.gain_load_n == 500.0)
-    direct = check_load(paper_model, c.load_n, paper_table.gains[1], paper_table.c0_phi_inv, filt)
+    direct = check_load(paper_model, c.load_n, paper_table.compensator.point(1), paper_table)
     assert c.spectral_radius == direct.spectral_radius
 
 

@@ -1,15 +1,28 @@
 """Gain table files: the shipped default, round trips, and refusal of every bad file."""
 
+import json
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
 
 from beamctl.gains.build import build_table, check_points, closed_loop_checks
+from beamctl.gains.compensator import MATRICES
 from beamctl.gains.defaults import default_table_path
-from beamctl.gains.table import GainTableError, content_sha256, load_table, write_table
+from beamctl.gains.table import (
+    DesignSettings,
+    GainTable,
+    GainTableError,
+    content_sha256,
+    load_table,
+    write_table,
+)
 from beamctl.models import build_model, parameters_from_dict
+from beamctl.models.iochain import AnalogFilter, IOChain
+
+FORMAT2_CHECK = Path(__file__).parent / "data" / "default_table_format2_check.json"
 
 
 @pytest.fixture(scope="module")
@@ -25,7 +38,9 @@ def small_table(paper_model):
 def test_default_table_covers_0_to_4000_N_every_50_N(default_table):
     np.testing.assert_array_equal(default_table.loads_n, np.arange(0.0, 4001.0, 50.0))
     assert default_table.gains.shape == (81, 4, 12)
+    assert default_table.compensator.n_points == 81 and default_table.compensator.n_states == 4
     assert default_table.schedule.mode == "interpolate"
+    assert default_table.design.kind == "integral-lqr" and default_table.design.io.is_direct
     assert default_table.design.sample_rate_hz == 2500.0
     assert default_table.all_stable and not default_table.forced
 
@@ -65,6 +80,18 @@ def test_regenerating_the_default_table_gives_the_same_gains(paper_model, defaul
     np.testing.assert_allclose(fresh.c0_phi_inv, default_table.c0_phi_inv, rtol=1e-8, err_msg=STALE)
 
 
+def test_the_compensator_form_checks_the_same_loop_as_format_2_did(default_table):
+    """The shipped table, rebuilt in format 3 (the same gains K), is checked on the compensator
+    the step runs with the delayed-ZOH loop of gains/closedloop.py; the format-2 table's check
+    analysed the same loop written out (q, velocity filter, K) in gains/discrete.py. Their
+    spectral radii at all 161 points agree to rounding."""
+    old = json.loads(FORMAT2_CHECK.read_text())
+    assert [p[0] for p in old["points"]] == [c.load_n for c in default_table.checks]
+    diff = max(abs(c.spectral_radius - p[1])
+               for c, p in zip(default_table.checks, old["points"], strict=True))
+    assert diff <= 1e-12, f"spectral radii differ from format 2's check by up to {diff:.3g}"
+
+
 def test_regenerating_the_default_table_gives_the_same_closed_loop(paper_model, default_table):
     """What matters of the gains is the loop they close: the rebuilt table's spectral radius
     at every check point equals the stored check's within 1 % of the table's stability margin
@@ -87,6 +114,11 @@ def test_a_written_table_reads_back_bit_for_bit(tmp_path, small_table, paper_par
     path = write_table(small_table, tmp_path / "t.yaml")
     back = load_table(path, paper_params)
     np.testing.assert_array_equal(back.gains, small_table.gains)
+    for m in (*MATRICES, "h", "start"):
+        np.testing.assert_array_equal(getattr(back.compensator, m), getattr(small_table.compensator, m),
+                                      err_msg=m)
+    assert back.compensator.plane_states == small_table.compensator.plane_states
+    assert back.compensator.period_s == small_table.compensator.period_s
     np.testing.assert_array_equal(back.loads_n, small_table.loads_n)
     np.testing.assert_array_equal(back.c0_phi_inv, small_table.c0_phi_inv)
     assert back.design == small_table.design and back.checks == small_table.checks
@@ -104,7 +136,7 @@ def _edited(tmp_path, table, edit) -> str:
 
 
 def _set_nan(d):
-    d["gains"][1][0][3] = float("nan")
+    d["compensator"]["d"][1][0][3] = float("nan")
 
 
 def _swap_loads(d):
@@ -112,13 +144,22 @@ def _swap_loads(d):
 
 
 @pytest.mark.parametrize(("edit", "field", "words"), [
-    (_set_nan, "gains", "non-finite"),
-    (lambda d: d["gains"][2].pop(), "gains", "shape"),
+    (_set_nan, "compensator.d", "non-finite"),
+    (lambda d: d["compensator"]["a"][2].pop(), "compensator.a", "shape"),
+    (lambda d: d["compensator"]["start"].pop(), "compensator.a", "shape"),
+    (lambda d: d["compensator"]["plane_states"].__setitem__("y", [0, 1]), "compensator.plane_states",
+     "splits the states"),
+    (lambda d: d["compensator"].pop("ki"), "compensator.ki", "missing"),
+    (lambda d: d["design"]["gains"][2].pop(), "design.gains", "shape"),
+    (lambda d: d["design"].__setitem__("kind", "pid"), "design.kind", "one of"),
+    (lambda d: d["design"].__setitem__("parameters", {}), "design.parameters", "integral-lqr"),
+    (lambda d: d["design"]["io"].__setitem__("delay_samples", -1), "design.io.delay_samples", ">= 0"),
+    (lambda d: d["design"].pop("io"), "design.io", "missing"),
     (_swap_loads, "loads_N", "strictly increasing"),
     (lambda d: d["c0_phi_inv"][0].__setitem__(0, "x"), "c0_phi_inv", "numbers"),
     (lambda d: d["model"]["parameters"]["beam"].__setitem__("radius", 0.0041), "model.sha256",
      "edited after"),
-    (lambda d: d.pop("design"), "design.sample_rate_hz", "missing"),
+    (lambda d: d.pop("design"), "design", "missing"),
     (lambda d: d["design"].__setitem__("velocity_cutoff_hz", 2000.0), "design.velocity_cutoff_hz",
      "Nyquist"),
     (lambda d: d["design"]["R_diagonal"].__setitem__(0, 0.0), "design.R_diagonal", "positive"),
@@ -127,6 +168,7 @@ def _swap_loads(d):
      "changed after it was built"),
     (lambda d: d.__setitem__("format", "something-else/1"), "format", "not a beamctl gain table"),
     (lambda d: d.__setitem__("format", "beamctl-gain-table/1"), "format", "rebuild it with"),
+    (lambda d: d.__setitem__("format", "beamctl-gain-table/2"), "format", "written by an earlier beamctl"),
 ])
 def test_hand_edited_table_is_refused_naming_the_field(tmp_path, small_table, paper_params,
                                                        edit, field, words):
@@ -187,7 +229,7 @@ def _rewritten(path, edit) -> None:
 
 def _scale_gain_at(load_n: float, factor: float):
     def edit(d):
-        d["gains"][d["loads_N"].index(load_n)][0][0] *= factor
+        d["compensator"]["d"][d["loads_N"].index(load_n)][0][0] *= factor
     return edit
 
 
@@ -201,6 +243,8 @@ def _other_model_with_its_own_hash(d):
     lambda d: d["loads_N"].__setitem__(1, 900.0),
     lambda d: d["c0_phi_inv"][0].__setitem__(0, d["c0_phi_inv"][0][0] * (1 + 1e-15)),
     lambda d: d["design"].__setitem__("velocity_cutoff_hz", 150.0),
+    lambda d: d["design"]["io"].__setitem__("delay_samples", 0.5),
+    lambda d: d["design"]["gains"][0][0].__setitem__(0, 1.0),
     lambda d: d["schedule"].__setitem__("mode", "paper"),
     _other_model_with_its_own_hash,
     lambda d: d["check"]["points"].pop(),
@@ -208,7 +252,8 @@ def _other_model_with_its_own_hash(d):
     lambda d: d.__setitem__("tool_version", "9.9"),
     lambda d: d.__setitem__("created", "2020-01-01T00:00:00+00:00"),
     lambda d: d.__setitem__("note", "checked by hand"),
-], ids=["gain", "grid", "c0_phi_inv-last-bit", "design", "schedule", "model-and-its-hash",
+], ids=["gain", "grid", "c0_phi_inv-last-bit", "design", "design-io", "design-gains", "schedule",
+        "model-and-its-hash",
         "check", "forced", "version", "created", "extra-field"])
 def test_the_content_hash_covers_every_field(tmp_path, small_table, paper_params, edit):
     path = write_table(small_table, tmp_path / "t.yaml")
@@ -237,3 +282,46 @@ def test_a_table_built_without_its_check_is_refused_to_run(tmp_path, paper_model
 def test_model_parameters_in_the_table_rebuild_the_same_model(default_table, paper_model):
     rebuilt = build_model(default_table.model_parameters)
     np.testing.assert_array_equal(rebuilt.elastic_stiffness, paper_model.elastic_stiffness)
+
+
+def test_format_2_is_refused_in_one_line_saying_what_to_run(tmp_path, small_table):
+    path = _edited(tmp_path, small_table, lambda d: d.__setitem__("format", "beamctl-gain-table/2"))
+    with pytest.raises(GainTableError) as err:
+        load_table(path, verify=False)
+    message = str(err.value)
+    assert "\n" not in message and "written by an earlier beamctl" in message, message
+    assert f"beamctl gains build --out {path}" in message and f"beamctl gains check {path}" in message
+
+
+def test_a_table_of_another_design_is_built_from_its_compensator_and_reads_back(tmp_path, small_table,
+                                                                              paper_model):
+    """What a model-based design does: a GainTable from a Compensator and its design settings
+    (kind, rate, the I/O chain it assumes, its parameters as a free mapping), checked on the
+    chain it declares, written, and read back as it was."""
+    io = IOChain(delay_samples=1.0, anti_alias=AnalogFilter("butterworth", 2, 1000.0))
+    design = DesignSettings(kind="lqg", sample_rate_hz=small_table.design.sample_rate_hz, io=io,
+                            parameters={"modes_per_plane": 7, "noise": {"strain": 1e-7}, "q": [1.0, 2.0]})
+    table = GainTable(loads_n=small_table.loads_n, compensator=small_table.compensator,
+                      c0_phi_inv=small_table.c0_phi_inv, design=design, schedule=small_table.schedule,
+                      model_parameters=paper_model.params)
+    table = replace(table, checks=closed_loop_checks(paper_model, table))
+    path = write_table(replace(table, forced=not table.all_stable), tmp_path / "lqg.yaml")
+    back = load_table(path, paper_model.params, verify=False)
+    assert back.design == design and back.gains is None and back.intact
+    assert back.checks == table.checks
+    np.testing.assert_array_equal(back.compensator.d, table.compensator.d)
+    data = yaml.safe_load(path.read_text())
+    assert data["design"]["io"]["anti_alias"]["type"] == "butterworth"
+    assert set(data["design"]) == {"kind", "sample_rate_hz", "io", "parameters"}
+
+
+def test_a_table_refuses_a_compensator_that_does_not_fit(small_table):
+    comp = small_table.compensator
+    with pytest.raises(ValueError, match="grid points"):
+        replace(small_table, loads_n=small_table.loads_n[:2])
+    with pytest.raises(ValueError, match="period"):
+        replace(small_table, compensator=replace(comp, period_s=1e-3))
+    with pytest.raises(ValueError, match="shape"):
+        replace(small_table, compensator=replace(comp, d=comp.d[:, :2]))
+    with pytest.raises(ValueError, match="integral-lqr"):
+        replace(small_table, gains=None)

@@ -58,7 +58,7 @@ def test_grid_includes_its_end():
 
 def test_mismatched_table_is_a_clean_error(tmp_path, capsys):
     bad = tmp_path / "bad.yaml"
-    bad.write_text("format: beamctl-gain-table/2\nloads_N: [0, .nan]\n")
+    bad.write_text("format: beamctl-gain-table/3\nloads_N: [0, .nan]\n")
     assert main(["gains", "check", str(bad)]) == 2
     err = capsys.readouterr().err
     assert "loads_N" in err and "Traceback" not in err

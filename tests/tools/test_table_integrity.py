@@ -36,10 +36,11 @@ def _refusal(capsys, argv) -> str:
 
 @pytest.fixture(scope="module")
 def tampered(tmp_path_factory):
-    """The shipped table with one gain times 10 at 3500 N, otherwise valid."""
+    """The shipped table with one gain times 10 at 3500 N (the compensator's D[0, 0], the one
+    from the first gauge to Fay,A), otherwise valid."""
     data = read_yaml(default_table_path())
     i = data["loads_N"].index(3500.0)
-    data["gains"][i][0][0] *= 10.0
+    data["compensator"]["d"][i][0][0] *= 10.0
     path = tmp_path_factory.mktemp("tampered") / "tampered.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path

@@ -1,0 +1,76 @@
+"""Safety in one place: the one ramp to bias, and the counts that end in a fault."""
+
+import numpy as np
+import pytest
+
+from beamctl.gains.defaults import default_table_path
+from beamctl.gains.table import load_table
+from beamctl.hal.base import Sample
+from beamctl.rt.config import controller_config
+from beamctl.rt.controller import Controller
+from beamctl.rt.loop import ControlLoop
+from beamctl.rt.safety import BiasRamp, Fault, State
+from tests.rt.fakes import ScriptedHal
+
+
+@pytest.fixture(scope="module")
+def table():
+    return load_table(default_table_path())
+
+
+def test_the_ramp_reaches_bias_linearly_in_its_samples_and_then_holds_it():
+    ramp = BiasRamp(75.0, 4)
+    start = np.array([150.0, 0.0, 75.0, 100.0, 50.0, 80.0])
+    ramp.begin(start)
+    out = np.empty(6)
+    steps = []
+    while not ramp.advance(out):
+        steps.append(out.copy())
+    assert len(steps) == 4, "four ramp samples, then done"
+    np.testing.assert_allclose(steps, [75.0 + (start - 75.0) * (1 - k / 4) for k in (1, 2, 3, 4)],
+                               rtol=1e-15)
+    np.testing.assert_array_equal(steps[-1], 75.0)
+    assert ramp.advance(out) and np.all(out == 75.0), "after the ramp, bias is held"
+
+
+def _driving(table):
+    c = Controller(table, controller_config({"start_ramp_time_s": 0.0, "safety": {"ramp_time_s": 0.02}}))
+    s = Sample()
+    s.strains[:] = (1e-4, -5e-5, 5e-5, 2e-5)
+    s.axial_load = 1500.0
+    c.arm(s)
+    c.start()
+    for _ in range(200):
+        c.step(s)
+    assert np.abs(c.voltages - 75.0).max() > 1.0, "the controller drives the stacks"
+    return c
+
+
+def test_the_loop_s_emergency_exit_writes_the_ramp_a_fault_runs(table):
+    """One ramp: from the same voltages, the emergency path of the loop (an error inside it)
+    writes to the HAL exactly the voltages the controller's fault ramp steps through."""
+    faulted = _driving(table)
+    faulted.fault(Fault.OPERATOR, "test")
+    fault_ramp = []
+    while not faulted.at_bias:
+        fault_ramp.append(faulted.step(None).copy())
+
+    c = _driving(table)
+    hal = ScriptedHal(c.sample_rate_hz)
+    hal.open()
+    ControlLoop(c, hal)._emergency_ramp()
+    np.testing.assert_array_equal(np.array(hal.written), np.array(fault_ramp))
+    assert len(hal.written) == round(0.02 * c.sample_rate_hz)
+
+
+def test_a_streak_of_overruns_faults_and_a_cycle_on_time_ends_the_streak(table):
+    c = _driving(table)
+    limit = c.config.safety.overrun_streak
+    for _ in range(limit - 1):
+        c.safety.cycle_overran()
+    c.safety.cycle_on_time()
+    for _ in range(limit - 1):
+        c.safety.cycle_overran()
+    assert c.state == State.RUNNING and c.safety.max_overrun_streak == limit - 1
+    c.safety.cycle_overran()
+    assert c.supervisor.fault == Fault.OVERRUN_STREAK, c.supervisor.reason()
