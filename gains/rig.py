@@ -7,8 +7,6 @@ The two planes of the circular section have the same spectrum; one plane is chec
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import scipy.linalg as sla
 
@@ -17,28 +15,6 @@ from beamctl.gains.compensator import PLANE_CHANNELS, CompensatorPoint
 from beamctl.models.analysis import critical_load
 from beamctl.models.fe import FEModel, plane_indices
 from beamctl.models.iochain import IOChain, delayed_zoh, with_filters
-
-
-@dataclass(frozen=True)
-class LoopPoles:
-    """Poles of the loop at one load: spectral radius and the damping ratio of the least
-    damped pole (via s = ln z / T)."""
-
-    load_n: float
-    spectral_radius: float
-    min_damping: float
-
-    @property
-    def stable(self) -> bool:
-        return self.spectral_radius < 1.0
-
-
-def pole_summary(poles: np.ndarray, sample_rate_hz: float) -> tuple[float, float]:
-    """Spectral radius and the damping ratio of the least damped pole (via s = ln z / T)."""
-    radius = float(np.max(np.abs(poles)))
-    s = np.log(poles.astype(complex)) * sample_rate_hz
-    damping = -s.real / np.maximum(np.abs(s), 1e-300)
-    return radius, float(np.min(damping))
 
 
 class RigPlane:
@@ -93,9 +69,3 @@ class RigPlane:
         io = list(PLANE_CHANNELS[self.plane])
         part = comp.plane(plane_states, self.plane)
         return closed_loop_matrix(zoh, c, part, h[np.ix_(io, io)], controller_period_s, self.force_gain)
-
-    def poles(self, axial_load_n: float, comp: CompensatorPoint, h: np.ndarray, plane_states: list[int],
-              controller_period_s: float) -> LoopPoles:
-        m = self.loop_matrix(axial_load_n, comp, h, plane_states, controller_period_s)
-        radius, damping = pole_summary(np.linalg.eigvals(m), self.sample_rate_hz)
-        return LoopPoles(load_n=float(axial_load_n), spectral_radius=radius, min_damping=damping)
