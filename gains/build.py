@@ -11,14 +11,24 @@ from importlib import metadata
 import numpy as np
 
 from beamctl.config.schema import ConfigError
+from beamctl.gains import lqg
 from beamctl.gains.compensator import Compensator, CompensatorPoint, from_integral_lqr
-from beamctl.gains.defaults import DEFAULT_DESIGN, DEFAULT_SCHEDULE, PAPER_GRID_N
+from beamctl.gains.defaults import (
+    DEFAULT_DESIGN,
+    DEFAULT_SCHEDULE,
+    LQG_CHAIN,
+    LQG_GRID_N,
+    LQG_SAMPLE_RATE_HZ,
+    LQG_SETTINGS,
+    PAPER_GRID_N,
+)
 from beamctl.gains.discrete import LoopCheck, pole_summary, velocity_filter
 from beamctl.gains.lqr import lqr_gain
 from beamctl.gains.rig import RigPlane
 from beamctl.gains.schedule import GainSchedule
 from beamctl.gains.table import DesignSettings, GainTable, ScheduleSettings
 from beamctl.models.fe import FEModel
+from beamctl.models.iochain import IOChain
 from beamctl.models.modal import reduce
 
 Progress = Callable[[int, int, str], None]
@@ -140,5 +150,36 @@ def build_table(model: FEModel, loads_n: Sequence[float] | None = None, mode: st
     if check:
         table = replace(table, checks=closed_loop_checks(model, table, progress, len(loads), total))
         # --force marks a table that is written in spite of an unstable point, nothing else
+        table = replace(table, forced=force and not table.all_stable)
+    return table
+
+
+def build_lqg_table(model: FEModel, loads_n: Sequence[float] | None = None,
+                    sample_rate_hz: float = LQG_SAMPLE_RATE_HZ, chain: IOChain = LQG_CHAIN,
+                    settings: lqg.LqgSettings = LQG_SETTINGS, schedule: ScheduleSettings | None = None,
+                    check: bool = True, force: bool = False,
+                    progress: Progress | None = None) -> GainTable:
+    """The delay-aware LQG (gains.lqg) at every grid load (default every 100 N to 4000 N),
+    designed for ``chain``, as the compensator the step runs, with the closed-loop check on
+    that chain."""
+    loads = np.asarray(LQG_GRID_N if loads_n is None else loads_n, dtype=float)
+    if len(loads) < 2:
+        raise ConfigError("--grid", loads.tolist(), "at least two grid points to interpolate between")
+    schedule = schedule or DEFAULT_SCHEDULE
+    if schedule.mode != "interpolate":
+        raise ConfigError("--mode", schedule.mode, "'interpolate' for an lqg design (the paper's "
+                          "switching belongs to the integral-lqr design)")
+    reduced = reduce(model)
+    total = 2 + (len(_plan_loads(loads, schedule)) if check else 0)
+    steps = iter(range(1, 3))
+    comp = lqg.design(model, loads, sample_rate_hz, chain, reduced.c0_phi_inv, settings,
+                      progress=(lambda plane: progress(next(steps), total, f"LQG plane {plane}"))
+                      if progress else None)
+    design = DesignSettings(kind="lqg", sample_rate_hz=sample_rate_hz, io=chain,
+                            parameters=settings.to_dict())
+    table = GainTable(loads_n=loads, compensator=comp, c0_phi_inv=reduced.c0_phi_inv, design=design,
+                      schedule=schedule, model_parameters=model.params, tool_version=tool_version())
+    if check:
+        table = replace(table, checks=closed_loop_checks(model, table, progress, 2, total))
         table = replace(table, forced=force and not table.all_stable)
     return table

@@ -10,8 +10,8 @@ import sys
 import numpy as np
 
 from beamctl.config.schema import ConfigError
-from beamctl.gains.build import build_table, closed_loop_checks
-from beamctl.gains.defaults import default_table_path
+from beamctl.gains.build import build_lqg_table, build_table, closed_loop_checks
+from beamctl.gains.defaults import DESIGNS, default_table_path, paper_table_path
 from beamctl.gains.table import GainTable, changed_file_message, load_table, write_table
 from beamctl.models import build_model, load_parameters
 from beamctl.tools.outputs import check_dir, check_file, replacing
@@ -37,20 +37,35 @@ def add_parser(sub) -> None:
     p = sub.add_parser("gains", help="gain tables (scheduled compensators): build, check, show")
     gsub = p.add_subparsers(dest="gains_command", metavar="ACTION", required=True)
 
-    b = gsub.add_parser("build", help="design K(Fx) over a load grid and check the closed loop")
+    b = gsub.add_parser("build", help="design the controller over a load grid, check the closed loop "
+                        "on the nominal model and over the uncertainty box")
     b.add_argument("--config", metavar="F", help="model parameters (YAML) over the paper's Table 1")
+    b.add_argument("--design", choices=DESIGNS, default="lqg",
+                   help="lqg: the delay-aware LQG at 6000 Hz (the shipped default); integral-lqr: the "
+                        "paper's design at 2500 Hz")
     b.add_argument("--grid", metavar="START:STOP:STEP",
-                   help="load grid in N (default 0:4000:50; paper mode 0:3500:500)")
+                   help="load grid in N (default lqg 0:4000:100, integral-lqr 0:4000:50, paper mode "
+                        "0:3500:500)")
     b.add_argument("--mode", choices=("interpolate", "paper"), default="interpolate",
-                   help="schedule: linear interpolation, or the paper's stepwise switching")
+                   help="schedule: linear interpolation, or the paper's stepwise switching (integral-lqr)")
+    b.add_argument("--no-robust", action="store_true",
+                   help="skip the robust check of the built table (minutes) and its worst case")
     b.add_argument("--out", metavar="FILE", default="gain-table.yaml",
                    help="where to write the table (default: gain-table.yaml here)")
     b.add_argument("--force", action="store_true",
                    help="write the table even if the closed loop is unstable somewhere (marked forced)")
     b.set_defaults(run=run_build)
 
-    c = gsub.add_parser("check", help="the discrete closed loop at every grid point and midpoint")
-    c.add_argument("file", nargs="?", help="gain table (default: the shipped gains/default.yaml)")
+    c = gsub.add_parser("check", help="the discrete closed loop at every grid point and midpoint; with "
+                        "--robust, over the uncertainty box")
+    c.add_argument("file", nargs="*", help="gain table(s) (default: the shipped default and the paper's "
+                   "design, side by side)")
+    c.add_argument("--robust", action="store_true",
+                   help="how far each table holds every rig of the uncertainty box (both cores, minutes)")
+    c.add_argument("--box", metavar="FILE", help="the uncertainty box (YAML, a box: section; default: "
+                   "the README's box B)")
+    c.add_argument("--workers", type=int, metavar="N", help="processes for --robust (default: 2, or 1 "
+                   "on a single core)")
     c.add_argument("--json", action="store_true", help="print one JSON object")
     c.set_defaults(run=run_check)
 
@@ -76,8 +91,14 @@ def run_build(args: argparse.Namespace) -> int:
     params = load_parameters(args.config)
     out = check_file(args.out, "--out")
     model = build_model(params)
-    with ProgressBar("gains build") as bar:
-        table = build_table(model, grid, mode=args.mode, force=args.force, progress=bar)
+    if args.design == "lqg" and args.mode != "interpolate":
+        raise ConfigError("--mode", args.mode, "'interpolate' with --design lqg (the paper's stepwise "
+                          "switching belongs to --design integral-lqr)")
+    with ProgressBar(f"gains build ({args.design})") as bar:
+        if args.design == "lqg":
+            table = build_lqg_table(model, grid, force=args.force, progress=bar)
+        else:
+            table = build_table(model, grid, mode=args.mode, force=args.force, progress=bar)
         elapsed = bar.close()
     worst = max(table.checks, key=lambda c: c.spectral_radius)
     print(f"{len(table.loads_n)} grid points {table.loads_n[0]:g}..{table.loads_n[-1]:g} N, "
@@ -94,37 +115,116 @@ def run_build(args: argparse.Namespace) -> int:
     with replacing(out) as temp:      # the service never reads half a table
         write_table(table, temp)
     print(f"wrote {out}{' (forced: unstable points)' if table.forced and not table.all_stable else ''}")
+    if not args.no_robust and table.all_stable:
+        from beamctl.gains.robust import DEFAULT_BOX
+
+        result = _robust(table, DEFAULT_BOX, None, quiet=False)
+        w = result.worst
+        print(f"robust check over box B ({len(result.scenarios)} rigs): worst held load / own Fx,cr = "
+              f"{result.worst_ratio:.3f} ({w.name}: {_held(w)} of {w.critical_load_n:.0f} N)")
     return 0
 
 
+def _held(r) -> str:
+    return "nothing" if r.held_load_n is None else f"{r.held_load_n:.0f} N"
+
+
+def _robust(table: GainTable, box, workers: int | None, quiet: bool):
+    from beamctl.gains.robust import robust_check
+
+    bar = None if quiet else ProgressBar("robust check")
+    with bar or contextlib.nullcontext():
+        result = robust_check(table, box, workers=workers, progress=bar)
+        if bar:
+            bar.close()
+    return result
+
+
 def run_check(args: argparse.Namespace) -> int:
-    table = _load(args.file, "check")
+    files = args.file or [str(default_table_path()), str(paper_table_path())]
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError("--workers", args.workers, "at least 1 process")
+    if args.box and not args.robust:
+        raise ConfigError("--box", args.box, "--robust as well (the box is what the robust check covers)")
+    tables = [(path, _load(path, "check")) for path in files]
+    box = None
+    if args.robust:
+        from beamctl.gains.robust import DEFAULT_BOX, load_box
+
+        box = load_box(args.box, tables[0][1].model_parameters) if args.box else DEFAULT_BOX
+    reports = [_check_one(path, table, box, args) for path, table in tables]
+    if args.json:
+        print(json.dumps(reports[0] if len(reports) == 1 else {"tables": reports}, indent=1))
+    elif len(reports) > 1:
+        _side_by_side(reports)
+    ok = all(r["all_stable"] and r["sha256_matches"] for r in reports)
+    return 0 if ok else 1
+
+
+def _check_one(path: str, table: GainTable, box, args: argparse.Namespace) -> dict:
+    """Nominal check (and robust check with a box) of one table; printed unless --json."""
     model = build_model(table.model_parameters)
-    bar = None if args.json else ProgressBar("gains check")
+    bar = None if args.json else ProgressBar(f"gains check {path}")
     with bar or contextlib.nullcontext():
         checks = closed_loop_checks(model, table, progress=bar)
         if bar:
             bar.close()
     all_stable = all(c.stable for c in checks)
+    report = {
+        "file": path, "design": design_summary(table),
+        "points": [{"load_N": c.load_n, "spectral_radius": c.spectral_radius, "stable": c.stable,
+                    "min_damping": c.min_damping, "gain_load_N": c.gain_load_n} for c in checks],
+        "all_stable": all_stable, "sha256_matches": table.intact}
+    result = _robust(table, box, args.workers, quiet=args.json) if box is not None else None
+    if result is not None:
+        report.update(result.to_dict())
     if args.json:
-        print(json.dumps({
-            "points": [{"load_N": c.load_n, "spectral_radius": c.spectral_radius, "stable": c.stable,
-                        "min_damping": c.min_damping, "gain_load_N": c.gain_load_n} for c in checks],
-            "all_stable": all_stable, "sha256_matches": table.intact}, indent=1))
-    else:
-        print(f"gain table {args.file or default_table_path()}")
+        return report
+    print(f"gain table {path}: {report['design']}")
+    if len(args.file) == 1:           # one table asked for: every load
         print(f"{'load N':>8} {'spectral radius':>16} {'min damping':>12}  stable")
         for c in checks:
             gain = "" if c.gain_load_n is None else f"  (gain of {c.gain_load_n:g} N)"
             print(f"{c.load_n:8.1f} {c.spectral_radius:16.6f} {c.min_damping:12.5f}  "
                   f"{'yes' if c.stable else 'NO'}{gain}")
-        print(f"all stable: {'yes' if all_stable else 'NO'}")
-        if table.intact:
-            print("content SHA-256: matches (the table is as it was built)")
-        else:
-            print("content SHA-256: DOES NOT MATCH (the file was changed after it was built; "
-                  "`beamctl run` refuses it)")
-    return 0 if all_stable and table.intact else 1
+    worst = max(checks, key=lambda c: c.spectral_radius)
+    print(f"nominal: all stable: {'yes' if all_stable else 'NO'} ({len(checks)} loads, largest spectral "
+          f"radius {worst.spectral_radius:.6f} at {worst.load_n:g} N)")
+    if result is not None:
+        _print_robust(result)
+    if table.intact:
+        print("content SHA-256: matches (the table is as it was built)")
+    else:
+        print("content SHA-256: DOES NOT MATCH (the file was changed after it was built; "
+              "`beamctl run` refuses it)")
+    print()
+    return report
+
+
+def design_summary(table: GainTable) -> str:
+    d = table.design
+    return f"{d.kind}, {d.sample_rate_hz:g} Hz, assumes {d.io.describe()}"
+
+
+def _print_robust(result) -> None:
+    w = result.worst
+    print(f"robust: worst held load / own Fx,cr = {result.worst_ratio:.3f} over {len(result.scenarios)} rigs "
+          f"(corners of {', '.join(result.corner_parameters) or 'none'})")
+    print(f"  worst rig: {w.name}: {', '.join(f'{k} {v:g}' for k, v in w.parameters.items()) or 'nominal'}")
+    print(f"  holds {_held(w)} of its own Fx,cr {w.critical_load_n:.0f} N; unstable at {w.limit.load_n:.0f} N "
+          f"(|z| = {w.limit.spectral_radius:.5f}, {w.limit.frequency_hz:.0f} Hz)")
+    print(f"  {'rig':<36} {'held N':>7} {'own Fx,cr N':>11} {'ratio':>6}")
+    for r in sorted(result.scenarios, key=lambda r: r.ratio)[:8]:
+        held = "-" if r.held_load_n is None else f"{r.held_load_n:.0f}"
+        print(f"  {r.name[:36]:<36} {held:>7} {r.critical_load_n:11.0f} {r.ratio:6.3f}")
+
+
+def _side_by_side(reports: list[dict]) -> None:
+    print("side by side:")
+    print(f"  {'table':<40} {'nominal':>8} {'worst ratio over box':>21}")
+    for r in reports:
+        robust = f"{r['robust']['worst_ratio']:.3f}" if "robust" in r else "(--robust)"
+        print(f"  {r['design'][:40]:<40} {'stable' if r['all_stable'] else 'UNSTABLE':>8} {robust:>21}")
 
 
 def run_show(args: argparse.Namespace) -> int:
