@@ -18,7 +18,7 @@ import yaml
 Validator = Callable[[Any], Any]
 
 
-class _Loader(yaml.SafeLoader):
+class _Loader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):  # libyaml's parser where built
     """Safe YAML loader that reads YAML 1.2 floats: ``75.8e9`` and ``1e-3`` are numbers, not
     the strings PyYAML's YAML 1.1 rules would make of them."""
 

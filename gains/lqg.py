@@ -57,6 +57,9 @@ class LqgSettings:
     strain_noise: standard deviation of the strain measurement (strain).
     youngs_modulus_factor: the design model's beam Young's modulus relative to the model's
         (a softer design model moves the schedule towards the weakest rig).
+    estimator_mode1_load_offset_n: the Kalman filter's (and the compensator's prediction) model
+        of mode 1 alone sees the grid load plus this offset, a softer mode 1 than the LQR's; the
+        higher modes keep the grid load (softening them instead destabilises mode 5 on stiff rigs).
     """
 
     n_modes: int = 7
@@ -69,6 +72,7 @@ class LqgSettings:
     high_mode_noise: float = 0.0
     strain_noise: float = 0.2e-6
     youngs_modulus_factor: float = 1.0
+    estimator_mode1_load_offset_n: float = 0.0
 
     def to_dict(self) -> dict:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
@@ -207,6 +211,11 @@ def plane_design(pm: PlaneModel, axial_load_n: float, period_s: float, chain: IO
     k = k_scaled / scale[None, :]
     kx, kxi = k[:, :n], k[:, n:]
     # Kalman filter on s (the buffer is known exactly: no noise there)
+    if settings.estimator_mode1_load_offset_n != 0.0:
+        k_el = pm.k_elastic.copy()
+        k_el[0, 0] -= settings.estimator_mode1_load_offset_n * pm.k_geometric[0, 0]
+        sm = sampled_model(replace(pm, k_elastic=k_el), axial_load_n, period_s, chain)
+        phi, gamma, cs = sm.phi, sm.gamma, sm.cs
     sc = _scales(pm, n, sm.n_modal)
     w = np.zeros((n, n))
     w += settings.force_noise_n**2 * sm.noise_in @ sm.noise_in.T

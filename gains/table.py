@@ -273,7 +273,8 @@ def write_table(table: GainTable, path: str | Path) -> Path:
               f"# ({table.design.kind} design). Written by `beamctl gains build`; checked on load.\n"
               "# Do not edit by hand: the SHA-256 of the content would no longer match and\n"
               "# `beamctl run` refuses it.\n")
-    p.write_text(header + yaml.safe_dump(table.to_dict(), sort_keys=False, width=120))
+    text = yaml.safe_dump(table.to_dict(), sort_keys=False, width=120, default_flow_style=None)
+    p.write_text(header + text)
     return p
 
 

@@ -33,7 +33,7 @@ HAL_DEFAULTS: dict[str, Any] = {
     "sim": {"pace": "wallclock", "own_actuators": False,
             "actuators": {"force_constant_n_per_v": 3.0, "bias_voltage_v": 75.0,
                           "orientation_deg": [90.0, 90.0]}},
-    "can": {"interface": "socketcan", "channel": "can0", "bitrate_bit_s": 1_000_000, "fd": False,
+    "can": {"interface": "socketcan", "channel": "can0", "bitrate_bit_s": 1_000_000, "fd": True,
             "data_bitrate_bit_s": 4_000_000, "dbc": "", "record": "", "rate_tolerance": 0.05},
 }
 

@@ -288,7 +288,7 @@ def run_experiment(cfg: ServiceConfig, settings: dict, tables: dict[str, GainTab
         traces[mode] = run_mode(mode, cfg, settings, tables[mode], telemetry_dir, step)
     if progress:
         progress(1000, 1000, "done")
-    io = plant_settings(cfg, tables[modes[0]].design.sample_rate_hz).io
+    io = plant_settings(cfg, tables[modes[0]]).io
     summary: dict = {"critical_load_N": critical_load(build_model(cfg.model)),
                      "plant_critical_load_N": critical_load(build_model(plant_parameters(cfg))),
                      "io_chain": {"description": io.describe(), **io.to_dict()}}

@@ -211,7 +211,8 @@ def _print_robust(result) -> None:
     print(f"robust: worst held load / own Fx,cr = {result.worst_ratio:.3f} over {len(result.scenarios)} rigs "
           f"(corners of {', '.join(result.corner_parameters) or 'none'})")
     print(f"  worst rig: {w.name}: {', '.join(f'{k} {v:g}' for k, v in w.parameters.items()) or 'nominal'}")
-    print(f"  holds {_held(w)} of its own Fx,cr {w.critical_load_n:.0f} N; unstable at {w.limit.load_n:.0f} N "
+    print(f"  holds {_held(w)} of its own Fx,cr {w.critical_load_n:.0f} N; "
+          f"unstable at {w.limit.load_n:.0f} N "
           f"(|z| = {w.limit.spectral_radius:.5f}, {w.limit.frequency_hz:.0f} Hz)")
     print(f"  {'rig':<36} {'held N':>7} {'own Fx,cr N':>11} {'ratio':>6}")
     for r in sorted(result.scenarios, key=lambda r: r.ratio)[:8]:

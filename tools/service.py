@@ -122,12 +122,17 @@ def plant_parameters(cfg: ServiceConfig) -> ModelParameters:
         raise ConfigError(f"plant.model.{exc.key}", exc.value, exc.expected, cfg.source) from None
 
 
-def plant_settings(cfg: ServiceConfig, sample_rate_hz: float,
+def plant_settings(cfg: ServiceConfig, table: GainTable,
                    overrides: dict[str, Any] | None = None) -> PlantConfig:
-    """The plant section (with ``overrides``) validated at ``sample_rate_hz``, the gain table's
-    rate: a plant sampled at any other rate is refused."""
-    pc = plant_config({"sample_rate_hz": sample_rate_hz, **cfg.plant, **(overrides or {})}, cfg.source,
-                      "plant.")
+    """The plant section (with ``overrides``) validated at the gain table's rate (a plant sampled
+    at any other rate is refused). The simulated rig has the I/O chain the table's design
+    declares (its delay, its anti-alias filter) except where ``plant.io`` says otherwise."""
+    sample_rate_hz = table.design.sample_rate_hz
+    data = {"sample_rate_hz": sample_rate_hz, **cfg.plant, **(overrides or {})}
+    io = data.get("io")
+    data["io"] = {**table.design.io.to_dict(), **io} if isinstance(io, dict) else (
+        table.design.io.to_dict() if io is None else io)
+    pc = plant_config(data, cfg.source, "plant.")
     if pc.sample_rate_hz != sample_rate_hz:
         raise ConfigError("plant.sample_rate_hz", pc.sample_rate_hz,
                           f"the gain table's sample rate {sample_rate_hz:g} Hz", cfg.source)
@@ -136,7 +141,7 @@ def plant_settings(cfg: ServiceConfig, sample_rate_hz: float,
 
 def build_plant(cfg: ServiceConfig, table: GainTable, overrides: dict[str, Any] | None = None) -> Plant:
     """The simulated beam: the plant section over the controller's model (or its own beam)."""
-    pc = plant_settings(cfg, table.design.sample_rate_hz, overrides)
+    pc = plant_settings(cfg, table, overrides)
     return Plant(build_model(plant_parameters(cfg)), pc)
 
 

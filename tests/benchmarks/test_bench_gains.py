@@ -5,7 +5,7 @@ import itertools
 import numpy as np
 import pytest
 
-from beamctl.gains.defaults import default_table_path
+from beamctl.gains.defaults import paper_table_path
 from beamctl.gains.schedule import GainSchedule
 from beamctl.gains.table import load_table
 
@@ -15,7 +15,7 @@ def test_schedule_follow_and_output(benchmark, mode):
     """The schedule's share of a step: follow the load, then the law's product."""
     from dataclasses import replace
 
-    table = load_table(default_table_path())
+    table = load_table(paper_table_path())
     s = GainSchedule.from_table(replace(table, schedule=replace(table.schedule, mode=mode)))
     loads = itertools.cycle(np.linspace(260.0, 3900.0, 1000).tolist())
     signals = np.full(12 + s.n_states, 1e-6)

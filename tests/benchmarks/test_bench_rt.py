@@ -4,7 +4,7 @@ import itertools
 
 import numpy as np
 
-from beamctl.gains.defaults import default_table_path
+from beamctl.gains.defaults import paper_table_path
 from beamctl.gains.table import load_table
 from beamctl.hal.base import Sample
 from beamctl.rt.config import controller_config
@@ -12,7 +12,7 @@ from beamctl.rt.controller import Controller
 
 
 def test_control_step(benchmark):
-    table = load_table(default_table_path())
+    table = load_table(paper_table_path())
     c = Controller(table, controller_config({"start_ramp_time_s": 0.0}))
     inputs = []
     for k in range(1000):

@@ -9,7 +9,7 @@ import pytest
 from beamctl.gains.build import check_load
 from beamctl.gains.closedloop import closed_loop_matrix
 from beamctl.gains.compensator import MATRICES, PLANE_CHANNELS, CompensatorPoint
-from beamctl.gains.defaults import default_table_path
+from beamctl.gains.defaults import paper_table_path
 from beamctl.gains.rig import RigPlane
 from beamctl.gains.schedule import GainSchedule
 from beamctl.gains.table import load_table
@@ -21,7 +21,7 @@ from beamctl.rt.controller import Controller
 
 @pytest.fixture(scope="module")
 def table():
-    return load_table(default_table_path())
+    return load_table(paper_table_path())
 
 
 def _with_estimator_feedback(table):

@@ -5,13 +5,13 @@ import pytest
 
 from beamctl.gains.build import integral_lqr_compensator
 from beamctl.gains.compensator import MATRICES, PLANE_CHANNELS
-from beamctl.gains.defaults import default_table_path
+from beamctl.gains.defaults import paper_table_path
 from beamctl.gains.table import load_table
 
 
 @pytest.fixture(scope="module")
 def table():
-    return load_table(default_table_path())
+    return load_table(paper_table_path())
 
 
 def test_the_z_plane_block_of_the_compensator_equals_its_y_plane_block(table):

@@ -10,7 +10,7 @@ import yaml
 
 from beamctl.gains.build import build_table, check_points, closed_loop_checks
 from beamctl.gains.compensator import MATRICES
-from beamctl.gains.defaults import default_table_path
+from beamctl.gains.defaults import paper_table_path
 from beamctl.gains.table import (
     DesignSettings,
     GainTable,
@@ -27,7 +27,7 @@ FORMAT2_CHECK = Path(__file__).parent / "data" / "default_table_format2_check.js
 
 @pytest.fixture(scope="module")
 def default_table(paper_params):
-    return load_table(default_table_path(), paper_params)
+    return load_table(paper_table_path(), paper_params)
 
 
 @pytest.fixture(scope="module")

@@ -7,7 +7,7 @@ import itertools
 
 import can
 
-from beamctl.gains.defaults import default_table_path
+from beamctl.gains.defaults import paper_table_path
 from beamctl.gains.table import load_table
 from beamctl.hal.can_backend import CanBackend
 from beamctl.hal.emulator import CanPlantEmulator
@@ -23,7 +23,7 @@ _channels = itertools.count()
 # busy 2-core machine can take milliseconds, and the budget must be about a silent DAQ, not
 # about the test's scheduling (the shipped default, 5, is for a DAQ on its own hardware).
 IN_PROCESS_STALE_PERIODS = 100
-TABLE = load_table(default_table_path())
+TABLE = load_table(paper_table_path())
 MODEL = build_model(TABLE.model_parameters)
 GEOMETRY = geometry(controller_config().actuators)
 

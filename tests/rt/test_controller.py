@@ -10,7 +10,7 @@ import pytest
 import scipy.signal
 
 from beamctl.gains.compensator import MATRICES
-from beamctl.gains.defaults import default_table_path
+from beamctl.gains.defaults import paper_table_path
 from beamctl.gains.discrete import velocity_filter
 from beamctl.gains.table import load_table
 from beamctl.hal.base import Sample
@@ -21,7 +21,7 @@ from beamctl.rt.safety import Fault, State, TransitionError
 
 @pytest.fixture(scope="module")
 def table():
-    return load_table(default_table_path())
+    return load_table(paper_table_path())
 
 
 def _sample(strains=(0.0, 0.0, 0.0, 0.0), load=1000.0):
@@ -221,14 +221,14 @@ _ALLOCATION_PROBE = """
 import json, tracemalloc
 import numpy as np
 from beamctl.gains.compensator import MATRICES
-from beamctl.gains.defaults import default_table_path
+from beamctl.gains.defaults import paper_table_path
 from beamctl.gains.discrete import velocity_filter
 from beamctl.gains.table import load_table
 from beamctl.hal.base import Sample
 from beamctl.rt.config import controller_config
 from beamctl.rt.controller import Controller
 
-c = Controller(load_table(default_table_path()), controller_config())
+c = Controller(load_table(paper_table_path()), controller_config())
 rng = np.random.default_rng(0)
 samples = []
 for k in range(50):

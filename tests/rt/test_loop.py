@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from beamctl.gains.defaults import default_table_path
+from beamctl.gains.defaults import paper_table_path
 from beamctl.gains.table import load_table
 from beamctl.hal.base import HalConnectionLost
 from beamctl.rt.config import controller_config
@@ -34,7 +34,7 @@ def oscillating(sequence: int):
 
 @pytest.fixture(scope="module")
 def table():
-    return load_table(default_table_path())
+    return load_table(paper_table_path())
 
 
 def _loop(table, script, pacing="sample", write_delay=0.0, fail_write_after=None,

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from beamctl.gains.compensator import MATRICES
-from beamctl.gains.defaults import default_table_path
+from beamctl.gains.defaults import paper_table_path
 from beamctl.gains.discrete import velocity_filter
 from beamctl.gains.table import load_table
 from beamctl.hal.base import Sample
@@ -118,7 +118,7 @@ def _inputs(top_n: float, n: int = 4000, seed: int = 11):
 
 @pytest.fixture(scope="module")
 def table():
-    return load_table(default_table_path())
+    return load_table(paper_table_path())
 
 
 def _paper_switching(table):

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from beamctl.gains.defaults import default_table_path
+from beamctl.gains.defaults import paper_table_path
 from beamctl.gains.table import load_table
 from beamctl.hal.base import Sample
 from beamctl.rt.config import controller_config
@@ -15,7 +15,7 @@ from tests.rt.fakes import ScriptedHal
 
 @pytest.fixture(scope="module")
 def table():
-    return load_table(default_table_path())
+    return load_table(paper_table_path())
 
 
 def test_the_ramp_reaches_bias_linearly_in_its_samples_and_then_holds_it():

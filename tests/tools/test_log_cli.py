@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import scipy.io
 
-from beamctl.gains.defaults import default_table_path
+from beamctl.gains.defaults import paper_table_path
 from beamctl.gains.table import load_table
 from beamctl.rt.config import controller_config
 from beamctl.rt.controller import RECORD_COLUMNS, Controller
@@ -18,7 +18,7 @@ from tests.rt.test_loop import oscillating
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory):
     path = tmp_path_factory.mktemp("log") / "run.btl"
-    table = load_table(default_table_path())
+    table = load_table(paper_table_path())
     controller = Controller(table, controller_config({"pacing": "sample"}))
     hal = ScriptedHal(table.design.sample_rate_hz, default=oscillating).open()
     writer = TelemetryWriter(path, RECORD_COLUMNS, capacity=8192).start()

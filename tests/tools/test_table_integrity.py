@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from beamctl.config.schema import read_yaml
-from beamctl.gains.defaults import default_table_path
+from beamctl.gains.defaults import paper_table_path
 from beamctl.gains.table import GainTableError
 from beamctl.tools.cli import main
 from beamctl.tools.experiment import experiment_config, paper_table
@@ -38,7 +38,7 @@ def _refusal(capsys, argv) -> str:
 def tampered(tmp_path_factory):
     """The shipped table with one gain times 10 at 3500 N (the compensator's D[0, 0], the one
     from the first gauge to Fay,A), otherwise valid."""
-    data = read_yaml(default_table_path())
+    data = read_yaml(paper_table_path())
     i = data["loads_N"].index(3500.0)
     data["compensator"]["d"][i][0][0] *= 10.0
     path = tmp_path_factory.mktemp("tampered") / "tampered.yaml"
@@ -99,7 +99,7 @@ def test_run_refuses_a_forced_unstable_table(tmp_path, capsys):
 
 
 def test_run_refuses_a_format_1_table_asking_to_rebuild_it(tmp_path, capsys):
-    data = read_yaml(default_table_path())
+    data = read_yaml(paper_table_path())
     data["format"] = "beamctl-gain-table/1"
     del data["sha256"]
     path = tmp_path / "old.yaml"
