@@ -94,7 +94,7 @@ def run_build(args: argparse.Namespace) -> int:
     if args.design == "lqg" and args.mode != "interpolate":
         raise ConfigError("--mode", args.mode, "'interpolate' with --design lqg (the paper's stepwise "
                           "switching belongs to --design integral-lqr)")
-    with ProgressBar(f"gains build ({args.design})") as bar:
+    with ProgressBar("gains build") as bar:
         if args.design == "lqg":
             table = build_lqg_table(model, grid, force=args.force, progress=bar)
         else:

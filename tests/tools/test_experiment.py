@@ -4,17 +4,19 @@ instead of 50 N/s; the loads at 0.5 mm and 1.0 mm move by less than 0.3 %)."""
 import json
 import signal
 
+import numpy as np
 import pytest
 
 from beamctl.config.schema import ConfigError
+from beamctl.models import build_model, critical_load, load_parameters
 from beamctl.rt.controller import COL
 from beamctl.rt.safety import State
 from beamctl.rt.telemetry import read_telemetry
 from beamctl.tools import experiment_cmd, plots
 from beamctl.tools.cli import main
-from beamctl.tools.experiment import BOW_AMPLITUDE_M, experiment_config, run_mode
+from beamctl.tools.experiment import BOW_AMPLITUDE_M, experiment_config, first_crossing, run_mode
 from beamctl.tools.experiment_cmd import REPORT_FILES
-from beamctl.tools.service import load_gain_table
+from beamctl.tools.service import load_gain_table, plant_parameters
 from beamctl.tools.signals import Interrupted
 from tests.tools.processes import beamctl, interrupt_when
 
@@ -242,11 +244,38 @@ def test_an_experiment_on_a_delayed_rig_runs_and_its_report_states_the_chain_and
     out = tmp_path / "report"
     assert main(["experiment", "--config", str(f), "--out", str(out), "--no-paper", "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
-    assert summary["io_chain"] == {"description": "delay 1 samples", "delay_samples": 1.0,
-                                   "anti_alias": "none", "reconstruction": "none"}
-    assert summary["controlled"]["design"].startswith("integral LQR, 2500 Hz"), summary["controlled"]
+    designed = load_gain_table(experiment_config()[0]).design.io
+    # the rig keeps the chain the design declares (its anti-alias filter) but for the delay given
+    assert summary["io_chain"] == {"description": f"delay 1 samples, anti-alias butterworth order 2 at "
+                                                  f"{designed.anti_alias.cutoff_hz:g} Hz",
+                                   "delay_samples": 1.0, "anti_alias": designed.anti_alias.to_dict(),
+                                   "reconstruction": "none"}
+    assert summary["controlled"]["design"].startswith("lqg, 6000 Hz"), summary["controlled"]
     assert summary["uncontrolled"]["design"].startswith("none"), summary["uncontrolled"]
     assert summary["controlled"]["end"] == "ramp ended at 800 N", summary["controlled"]
     text = (out / "summary.txt").read_text()
     assert "rig I/O chain: delay 1 samples" in text and "design (interpolated): integral LQR" in text, text
     assert json.loads((out / "summary.json").read_text())["io_chain"] == summary["io_chain"]
+
+
+def test_the_shipped_design_holds_a_stiffer_late_rig_beyond_its_own_critical_load():
+    """The robust design's promise in the time domain: a rig whose beam is 4 % stiffer than the
+    model and whose voltages arrive a whole sample late (the design assumed half a sample), with
+    stacks of 6 N/V so that force is not the limit, is held beyond its own critical load."""
+    youngs = 1.04 * load_parameters().beam.youngs_modulus
+    cfg, settings = experiment_config({
+        "plant": {"load": {"start": 2600.0, "end": 3600.0, "rate": 200.0, "hold": 0.1},
+                  "model": {"beam": {"youngs_modulus": youngs}}, "io": {"delay_samples": 1.0}},
+        "controller": {"actuators": {"force_constant_n_per_v": 6.0}}})
+    table = load_gain_table(cfg)
+    assert table.design.kind == "lqg", "the shipped default is the robust design"
+    own_critical = critical_load(build_model(plant_parameters(cfg)))
+    assert own_critical == pytest.approx(1.04 * CRITICAL_LOAD_N, rel=0.01)
+    trace = run_mode("interpolate", cfg, settings, table)
+    load, deflection = np.asarray(trace.load_n), np.asarray(trace.deflection_m)
+    lost = first_crossing(load, deflection, 1e-3)
+    assert lost is None or lost > own_critical, (
+        f"the beam passed 1 mm at {lost:.0f} N, below its own Fx,cr {own_critical:.0f} N ({trace.end})")
+    assert load.max() > own_critical, f"the run ended at {load.max():.0f} N: {trace.end}"
+    below = deflection[load < own_critical]
+    assert below.max() < 0.1e-3, f"largest deflection below Fx,cr {below.max() * 1e3:.3f} mm"

@@ -6,16 +6,20 @@ import threading
 import numpy as np
 import pytest
 
+from beamctl.gains.defaults import paper_table_path
 from beamctl.hal.can_backend import CanBackend
 from beamctl.tools.cli import main
 
 
-def test_plant_command_plays_the_daq_for_a_controller(capsys):
+def test_plant_command_plays_the_daq_for_a_controller(capsys, tmp_path):
     channel = "plant-cli"
+    config = tmp_path / "paper.yaml"      # the paper's design: 2500 Hz
+    config.write_text(f"gains: {{table: {paper_table_path()}}}\n")
     backend = CanBackend(2500.0, "virtual", channel).open()
     result = {}
     thread = threading.Thread(target=lambda: result.setdefault(
-        "rc", main(["plant", "--can", f"virtual:{channel}", "--duration", "0.4", "--pace", "wallclock"])))
+        "rc", main(["plant", "--can", f"virtual:{channel}", "--config", str(config), "--duration", "0.4",
+                     "--pace", "wallclock"])))
     thread.start()
     try:
         samples = []

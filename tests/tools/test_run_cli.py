@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
+from beamctl.gains.defaults import paper_table_path
 from beamctl.hal.budget import bus_budget
 from beamctl.hal.dbc import Contract
 from beamctl.hal.emulator import CanPlantEmulator
@@ -17,6 +18,9 @@ from beamctl.rt.telemetry import TelemetryError, read_telemetry
 from beamctl.tools.cli import main
 from tests.hal.rigs import GEOMETRY, IN_PROCESS_STALE_PERIODS, make_plant
 from tests.tools.processes import beamctl
+
+# the paper's design (integral LQR, 2500 Hz) builds in seconds; the robust check is left out
+PAPER_BUILD = ("gains", "build", "--design", "integral-lqr", "--no-robust")
 
 
 def _has_records(path) -> bool:
@@ -28,6 +32,13 @@ def _has_records(path) -> bool:
 
 
 def _config(tmp_path, **sections):
+    """A service file; unless a test says otherwise it runs the paper's design (2500 Hz), whose
+    frames fit on classic CAN, so that the loop and the CAN path are tested at the rate they
+    have been measured at."""
+    sections.setdefault("gains", {"table": str(paper_table_path())})
+    can = sections.get("hal", {}).get("can")
+    if can is not None:
+        can.setdefault("fd", False)
     f = tmp_path / "service.yaml"
     f.write_text(yaml.safe_dump(sections))
     return str(f)
@@ -68,7 +79,7 @@ def test_a_bus_over_budget_is_refused_with_what_would_fit(tmp_path, capsys):
 
 def test_a_forced_table_is_refused(tmp_path, capsys):
     table = tmp_path / "forced.yaml"
-    assert main(["gains", "build", "--grid", "4000:4500:500", "--out", str(table), "--force"]) == 0
+    assert main([*PAPER_BUILD, "--grid", "4000:4500:500", "--out", str(table), "--force"]) == 0
     capsys.readouterr()
     cfg = _config(tmp_path, **SIM, gains={"table": str(table)})
     assert main(["run", "--config", cfg]) == 2
@@ -152,7 +163,7 @@ def test_bad_flags_are_refused_with_exit_2(argv, capsys):
 
 
 def test_a_single_point_grid_cannot_be_interpolated(tmp_path, capsys):
-    assert main(["gains", "build", "--grid", "100:100:1", "--out", str(tmp_path / "g.yaml")]) == 2
+    assert main([*PAPER_BUILD, "--grid", "100:100:1", "--out", str(tmp_path / "g.yaml")]) == 2
     assert "--grid" in capsys.readouterr().err and not (tmp_path / "g.yaml").exists()
 
 

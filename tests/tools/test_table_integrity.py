@@ -13,6 +13,9 @@ from beamctl.gains.table import GainTableError
 from beamctl.tools.cli import main
 from beamctl.tools.experiment import experiment_config, paper_table
 
+# the paper's design (integral LQR, 2500 Hz) builds in seconds; the robust check is left out
+PAPER_BUILD = ("gains", "build", "--design", "integral-lqr", "--no-robust")
+
 SIM = {"hal": {"backend": "sim"}, "controller": {"pacing": "sample"},
        "plant": {"load": {"start": 1000.0, "end": 1000.0}}}
 
@@ -92,7 +95,7 @@ def test_run_refuses_a_table_built_without_its_check(tmp_path, capsys, paper_mod
 
 def test_run_refuses_a_forced_unstable_table(tmp_path, capsys):
     path = tmp_path / "forced.yaml"
-    assert main(["gains", "build", "--grid", "4000:4500:500", "--out", str(path), "--force"]) == 0
+    assert main([*PAPER_BUILD, "--grid", "4000:4500:500", "--out", str(path), "--force"]) == 0
     capsys.readouterr()
     line = _refusal(capsys, ["run", "--config", _service(tmp_path, path)])
     assert "check.forced" in line and "unstable at" in line and "--force" in line, line
@@ -112,7 +115,7 @@ def test_run_refuses_a_format_1_table_asking_to_rebuild_it(tmp_path, capsys):
 
 def test_run_accepts_a_table_as_built_and_checked(tmp_path, capsys):
     path = tmp_path / "genuine.yaml"
-    assert main(["gains", "build", "--grid", "0:2000:1000", "--out", str(path)]) == 0
+    assert main([*PAPER_BUILD, "--grid", "0:2000:1000", "--out", str(path)]) == 0
     assert main(["run", "--config", _service(tmp_path, path)]) == 0, capsys.readouterr().err
     assert "ended STOPPED" in capsys.readouterr().out
 
