@@ -121,7 +121,7 @@ def run_build(args: argparse.Namespace) -> int:
         result = _robust(table, DEFAULT_BOX, None, quiet=False)
         w = result.worst
         print(f"robust check over box B ({len(result.scenarios)} rigs): worst held load / own Fx,cr = "
-              f"{result.worst_ratio:.3f} ({w.name}: {_held(w)} of {w.critical_load_n:.0f} N)")
+              f"{result.worst_ratio:.4f} ({w.name}: {_held(w)} of {w.critical_load_n:.0f} N)")
     return 0
 
 
@@ -208,7 +208,8 @@ def design_summary(table: GainTable) -> str:
 
 def _print_robust(result) -> None:
     w = result.worst
-    print(f"robust: worst held load / own Fx,cr = {result.worst_ratio:.3f} over {len(result.scenarios)} rigs "
+    print(f"robust: worst held load / own Fx,cr = {result.worst_ratio:.4f} over {len(result.scenarios)} "
+          f"rigs "
           f"(corners of {', '.join(result.corner_parameters) or 'none'})")
     print(f"  worst rig: {w.name}: {', '.join(f'{k} {v:g}' for k, v in w.parameters.items()) or 'nominal'}")
     print(f"  holds {_held(w)} of its own Fx,cr {w.critical_load_n:.0f} N; "
@@ -224,7 +225,7 @@ def _side_by_side(reports: list[dict]) -> None:
     print("side by side:")
     print(f"  {'table':<40} {'nominal':>8} {'worst ratio over box':>21}")
     for r in reports:
-        robust = f"{r['robust']['worst_ratio']:.3f}" if "robust" in r else "(--robust)"
+        robust = f"{r['robust']['worst_ratio']:.4f}" if "robust" in r else "(--robust)"
         print(f"  {r['design'][:40]:<40} {'stable' if r['all_stable'] else 'UNSTABLE':>8} {robust:>21}")
 
 

@@ -19,7 +19,7 @@ def test_a_bit_rate_no_can_bus_has_is_refused_naming_the_key(can, key):
 
 
 def test_the_data_phase_rate_matters_only_with_can_fd():
-    classic = hal_config({"can": {"bitrate_bit_s": 500_000, "data_bitrate_bit_s": 100_000}})
+    classic = hal_config({"can": {"fd": False, "bitrate_bit_s": 500_000, "data_bitrate_bit_s": 100_000}})
     assert classic.can["bitrate_bit_s"] == 500_000
     fd = hal_config({"can": {"fd": True, "data_bitrate_bit_s": 8_000_000}})
     assert fd.can["data_bitrate_bit_s"] == 8_000_000
