@@ -54,6 +54,17 @@ PAPER_GRID_N = np.arange(0.0, 3500.0 + 1e-9, 500.0)  # the experiment's 0..3500 
 DEFAULT_TABLE = "default.yaml"
 PAPER_TABLE = "paper.yaml"
 
+# How the shipped LQG was found (worst held load / own Fx,cr over box B, `beamctl gains check
+# --robust`; the paper's design: 0.875):
+# - 2500 Hz, designed for a delay of 1 or 0.5 sample, 5-9 modes, other weights, noise levels or
+#   a softened design model: 0.94-0.96 at best. Mode 5 (2.5-2.7 kHz) folds into 0-170 Hz and
+#   destabilises stiff rigs as soon as the loop gain rises; soft rigs lose the slow closed-loop
+#   mode 1 just below their own Fx,cr.
+# - 6000 Hz without a filter: 0.95-0.98 (mode 7, 5.1 kHz, folds to 0.8-1 kHz on stiff rigs);
+#   with a 2nd-order Butterworth anti-alias filter at 1 kHz: 0.982 (soft rigs limit).
+# - Designing the LQR, or the whole model, softer: stiff rigs fail at mode 5 (0.93-0.97).
+#   Softening the estimator's mode 1 alone (its load + 300 N): 1.000; 370 N loses a stiff rig
+#   (0.994), a 1.3 kHz filter with 300-320 N a stiff one (0.995).
 # The shipped default: the delay-aware LQG (gains.lqg) with the best worst case over the
 # uncertainty box of the robust check (README, "Robustness"). 6000 Hz needs CAN FD (classic
 # CAN carries at most 2833 Hz of these frames); the design assumes the voltages reach the stacks
