@@ -20,6 +20,7 @@ from __future__ import annotations
 import itertools
 import math
 import os
+import signal
 from collections.abc import Callable, Mapping
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
@@ -323,6 +324,9 @@ _WORKER: dict[str, Any] = {}
 
 
 def _init_worker(table: GainTable, box: Box) -> None:
+    # a worker process of this check: Ctrl-C at the terminal is the caller's to handle (the
+    # pool is shut down from there), not a traceback from every worker
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:        # one BLAS thread per process: the processes share the cores
         from threadpoolctl import threadpool_limits
         _WORKER["limits"] = threadpool_limits(1)
