@@ -33,7 +33,8 @@ import numpy as np
 import scipy.linalg as sla
 
 from beamctl.gains.compensator import PLANE_CHANNELS, Compensator
-from beamctl.models.fe import FEModel, plane_eigen, plane_indices
+from beamctl.models.analysis import critical_load
+from beamctl.models.fe import FEModel, build_model, plane_eigen, plane_indices
 from beamctl.models.iochain import IOChain, delayed_zoh, with_filters
 from beamctl.models.modal import orient_modes
 
@@ -217,8 +218,7 @@ def plane_design(pm: PlaneModel, axial_load_n: float, period_s: float, chain: IO
         sm = sampled_model(replace(pm, k_elastic=k_el), axial_load_n, period_s, chain)
         phi, gamma, cs = sm.phi, sm.gamma, sm.cs
     sc = _scales(pm, n, sm.n_modal)
-    w = np.zeros((n, n))
-    w += settings.force_noise_n**2 * sm.noise_in @ sm.noise_in.T
+    w = settings.force_noise_n**2 * sm.noise_in @ sm.noise_in.T
     if settings.high_mode_noise > 0 and m > 2:
         for i in range(2, m):
             w[m + i, m + i] += (settings.high_mode_noise * period_s) ** 2
@@ -237,9 +237,6 @@ def plane_design(pm: PlaneModel, axial_load_n: float, period_s: float, chain: IO
 def design(model: FEModel, loads_n, sample_rate_hz: float, chain: IOChain, h: np.ndarray,
            settings: LqgSettings, progress=None) -> Compensator:
     """The LQG compensator of both planes at every grid load (states: plane y, then z)."""
-    from beamctl.models.analysis import critical_load
-    from beamctl.models.fe import build_model
-
     design_model = model
     if settings.youngs_modulus_factor != 1.0:
         params = model.params
