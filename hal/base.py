@@ -71,6 +71,12 @@ class HalBase(abc.ABC):
         self.writes = 0
         self._sample = Sample()
         self.state_code = self.fault_code = self.flags_code = 0
+        # seconds from the arrival of the sample the last write answered to that write's send
+        # call, for backends that can measure it (NaN: not measured)
+        self.answer_age_s = float("nan")
+        # the largest strain the hardware can report (a reading there may be clipped); None: no
+        # such limit
+        self.strain_full_scale: float | None = None
 
     # -- hooks for backends --------------------------------------------------------------------
     @abc.abstractmethod
@@ -124,6 +130,26 @@ class HalBase(abc.ABC):
             raise HalConnectionLost(f"{self.name}: write on a closed backend")
         self._write(voltages)
         self.writes += 1
+
+    def discard_backlog(self) -> int:
+        """Drop every sample already queued (taken before the controller was ready to answer
+        them); return how many. Called once before the first read."""
+        if not self.is_open:
+            raise HalConnectionLost(f"{self.name}: discard on a closed backend")
+        return self._discard_backlog()
+
+    def _discard_backlog(self) -> int:
+        return 0
+
+    def announce(self, state: int, fault: int, flags: int = 0) -> None:
+        """Publish the status and report it to the hardware now (the last word before the
+        controller exits: STOPPED or FAULT), not at the next heartbeat."""
+        self.publish_status(state, fault, flags)
+        if self.is_open:
+            self._announce()
+
+    def _announce(self) -> None:
+        pass
 
     def publish_status(self, state: int, fault: int, flags: int = 0) -> None:
         """The controller's safety state, latched fault and flags, for backends that report

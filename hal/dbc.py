@@ -2,7 +2,9 @@
 
 Each message becomes a ``FrameCodec``: shifts, masks and scales derived from the DBC signal
 definitions, so decoding a frame in the loop is integer arithmetic on one ``int`` (no DBC
-parsing, no dict building). Tests check the codecs against cantools on random values.
+parsing, no dict building). Every message of the contract carries end-to-end protection
+(hal/e2e.py): ``encode`` fills its ``crc`` byte, ``crc_ok`` checks it. Tests check the codecs
+against cantools on random values.
 """
 
 from __future__ import annotations
@@ -14,14 +16,15 @@ from pathlib import Path
 import cantools
 
 from beamctl.hal.base import HalConfigurationError
+from beamctl.hal.e2e import frame_crc
 
 STRAIN_SIGNALS = ("strain_y1", "strain_z1", "strain_y2", "strain_z2")
 VOLTAGE_SIGNALS = ("voltage_a1", "voltage_a2", "voltage_a3", "voltage_b1", "voltage_b2", "voltage_b3")
 MESSAGES = {
-    "strains": ("DAQ_Strains", STRAIN_SIGNALS + ("sequence",)),
-    "load": ("DAQ_Load", ("axial_load", "sequence")),
-    "voltages": ("CTRL_Voltages", VOLTAGE_SIGNALS + ("sequence",)),
-    "status": ("CTRL_Status", ("state", "fault", "flags", "sequence")),
+    "strains": ("DAQ_Strains", STRAIN_SIGNALS + ("sequence", "crc")),
+    "load": ("DAQ_Load", ("axial_load", "sequence", "crc")),
+    "voltages": ("CTRL_Voltages", VOLTAGE_SIGNALS + ("sequence", "crc")),
+    "status": ("CTRL_Status", ("state", "fault", "flags", "sequence", "crc")),
 }
 DEFAULT_DBC = "beamctl.dbc"
 
@@ -49,7 +52,9 @@ class SignalCodec:
 class FrameCodec:
     """Encode/decode one message. ``decode_into(data, out)`` writes the physical values of
     the signals in DBC order into ``out`` (a list) and returns False when a value lies outside
-    the DBC range; ``encode(values)`` returns the frame bytes (ValueError when out of range)."""
+    the DBC range; ``encode(values)`` returns the frame bytes (ValueError when out of range),
+    with the CRC computed into the ``crc`` byte whatever value ``values`` gives it;
+    ``crc_ok(data)`` checks a received frame's CRC."""
 
     def __init__(self, message: cantools.database.Message) -> None:
         self.name = message.name
@@ -57,7 +62,8 @@ class FrameCodec:
         self.length = message.length
         self.is_extended = message.is_extended_frame
         attrs = message.dbc.attributes if message.dbc else {}
-        self.divisor = int(attrs["SampleDivisor"].value) if "SampleDivisor" in attrs else 1
+        self.attributes = {name: a.value for name, a in attrs.items()}
+        self.divisor = int(self.attributes.get("SampleDivisor", 1))
         self.signals: list[SignalCodec] = []
         for s in message.signals:
             if s.byte_order != "little_endian":
@@ -68,6 +74,18 @@ class FrameCodec:
             self.signals.append(SignalCodec(s.name, s.start, s.length, s.is_signed, float(s.scale),
                                             float(s.offset), lo, hi))
         self.names = [s.name for s in self.signals]
+        self.sequence_modulus = 1 << self.signals[self.names.index("sequence")].length \
+            if "sequence" in self.names else 0
+        self.crc_byte = None
+        if "crc" in self.names:
+            crc = self.signals[self.names.index("crc")]
+            if crc.length != 8 or crc.start % 8 or crc.signed or crc.scale != 1 or crc.offset != 0:
+                raise HalConfigurationError(f"DBC message {message.name}: signal crc must be one whole "
+                                            f"unsigned byte (start a multiple of 8, length 8, scale 1)")
+            self.crc_byte = crc.start // 8
+            if self.crc_byte >= self.length:
+                raise HalConfigurationError(f"DBC message {message.name}: crc lies outside its "
+                                            f"{self.length} bytes")
         self._plan = [(s.start, s.mask, (1 << (s.length - 1)) if s.signed else 0, 1 << s.length,
                        s.scale, s.offset, s.minimum, s.maximum) for s in self.signals]
 
@@ -91,15 +109,26 @@ class FrameCodec:
             out[i] = value
         return ok
 
+    def crc_ok(self, data: bytes | bytearray) -> bool:
+        """The frame's CRC byte is right (always True for a message without one)."""
+        if self.crc_byte is None:
+            return True
+        return data[self.crc_byte] == frame_crc(self.frame_id, data, self.crc_byte)
+
     def encode(self, values) -> bytes:
         word = 0
         for (start, mask, _sign, _span, scale, offset, lo, hi), value, s in zip(
                 self._plan, values, self.signals, strict=True):
+            if s.name == "crc":
+                continue
             if not lo <= value <= hi:
                 raise ValueError(f"{self.name}.{s.name} = {value!r} outside the DBC range [{lo}, {hi}]")
             raw = round((value - offset) / scale)
             word |= (raw & mask) << start
-        return word.to_bytes(self.length, "little")
+        data = bytearray(word.to_bytes(self.length, "little"))
+        if self.crc_byte is not None:
+            data[self.crc_byte] = frame_crc(self.frame_id, data, self.crc_byte)
+        return bytes(data)
 
 
 class Contract:
@@ -120,8 +149,14 @@ class Contract:
             missing = [s for s in signals if s not in [x.name for x in message.signals]]
             if missing:
                 raise HalConfigurationError(f"DBC {self.path}: {message_name} lacks signals {missing}")
+            if message.is_extended_frame:
+                raise HalConfigurationError(f"DBC {self.path}: {message_name} has an extended (29-bit) "
+                                            f"identifier; the contract uses standard 11-bit identifiers")
             self.codecs[role] = FrameCodec(message)
         self.strains = self.codecs["strains"]
         self.load = self.codecs["load"]
         self.voltages = self.codecs["voltages"]
         self.status = self.codecs["status"]
+        # the DAQ's duty when the controller falls silent (CTRL_Voltages attributes)
+        self.silence_timeout_s = float(self.voltages.attributes.get("SilenceTimeoutMs", 0)) / 1e3
+        self.fallback_ramp_s = float(self.voltages.attributes.get("FallbackRampMs", 0)) / 1e3

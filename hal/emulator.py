@@ -1,7 +1,14 @@
-"""The CAN plant emulator: the simulated beam behind the DBC, playing the DAQ.
+"""The CAN plant emulator: the simulated beam behind the DBC, playing the DAQ, duties included.
 
-Each sample it sends ``DAQ_Strains`` (and every ``SampleDivisor`` samples ``DAQ_Load``),
-then applies the latest ``CTRL_Voltages`` it received and advances the plant one sample.
+Each sample it sends ``DAQ_Strains`` (and every ``SampleDivisor`` samples ``DAQ_Load``, before
+the strains), then applies the latest valid ``CTRL_Voltages`` it received and advances the
+plant one sample. It keeps the DAQ's side of the contract (hal/beamctl.dbc): a voltage frame is
+applied only if it is a standard data frame of the right length with a good CRC and a new
+sequence (hal/e2e.py), everything else is counted and dropped; when no valid voltage frame has
+arrived for ``silence_timeout_s`` (the DBC's ``SilenceTimeoutMs``) it ramps the stacks linearly to
+bias within ``fallback_ramp_s`` (``FallbackRampMs``) by itself, and holds bias until valid frames
+come again.
+
 ``wallclock`` pace sends at the sample rate of the wall clock, as the DAQ does; ``lockstep``
 waits for the controller's answer to each sample before stepping (for tests and bench runs
 that must not depend on the machine's load: however late the answer, the plant applies it to
@@ -9,6 +16,10 @@ the sample it answers). Run it in a thread (tests, over python-can's ``virtual``
 as its own process: ``beamctl plant --can socketcan:vcan0``. ``on_step(plant, voltages)`` is
 called in the emulator's own thread after every plant step, with the voltages the stacks had
 during that step: the one consistent place to observe the plant while it runs.
+
+The controller's latency is measured per sample as the DAQ sees it: from the send of a
+``DAQ_Strains`` frame to the bus time stamp of the ``CTRL_Voltages`` frame that answers it (the
+same sequence), in ``latencies_s`` (NaN where a sample was not answered).
 """
 
 from __future__ import annotations
@@ -21,48 +32,69 @@ import can
 import numpy as np
 
 from beamctl.hal.dbc import STRAIN_SIGNALS, VOLTAGE_SIGNALS, Contract
+from beamctl.hal.e2e import NEW, REPEATED, AliveCounter
 from beamctl.models.actuators import StackGeometry
 from beamctl.models.plant import Plant
 
 PACES = ("wallclock", "lockstep")
 WAIT_SLICE_S = 0.05        # a lockstep wait looks at the stop request this often
+RESYNC_PERIODS = 100       # as the controller's side (hal/can_backend.py)
 
 
 class CanPlantEmulator:
     def __init__(self, bus: can.BusABC, plant: Plant, geometry: StackGeometry,
                  contract: Contract | None = None, pace: str = "wallclock",
                  answer_timeout_s: float = 0.05, latency_samples: int = 0,
+                 silence_timeout_s: float | None = None, fallback_ramp_s: float | None = None,
                  on_step: Callable[[Plant, np.ndarray], None] | None = None) -> None:
         if pace not in PACES:
             raise ValueError(f"emulator pace {pace!r}: expected one of {PACES}")
         self.bus = bus
         self.plant = plant
         self.contract = contract or Contract()
+        c = self.contract
         self.pace = pace
         self.answer_timeout_s = answer_timeout_s
+        self.silence_timeout_s = c.silence_timeout_s if silence_timeout_s is None else silence_timeout_s
+        self.fallback_ramp_s = c.fallback_ramp_s if fallback_ramp_s is None else fallback_ramp_s
+        if not self.silence_timeout_s > 0:
+            raise ValueError(f"silence time-out {self.silence_timeout_s!r} s: the DAQ must fall back "
+                             f"after a positive time without valid voltage frames")
         self.on_step = on_step
         self.period_s = plant.config.sample_period
         self._force_matrix = geometry.force_matrix()
         self._voltages = np.full(6, geometry.bias_voltage)
         self._bias = np.full(6, geometry.bias_voltage)
-        self._decoded = [0.0] * len(self.contract.voltages.names)
-        c = self.contract
+        self._fallback_from = self._bias.copy()
+        self._decoded = [0.0] * len(c.voltages.names)
         self._voltage_order = c.voltages.order(VOLTAGE_SIGNALS)
         self._voltage_sequence = c.voltages.index("sequence")
+        self._voltage_counter = AliveCounter(c.voltages.sequence_modulus, RESYNC_PERIODS * self.period_s)
         self._strain_order = c.strains.order(STRAIN_SIGNALS)
         self._strain_values = [0.0] * len(c.strains.names)
+        self._strain_limit = c.strains.signals[self._strain_order[0]].maximum
         self._load_values = [0.0] * len(c.load.names)
+        self._status_values = [0] * len(c.status.names)
+        self._sent_at = np.full(c.strains.sequence_modulus, np.nan)   # time.time() of each sequence
         self.samples = 0
         self.voltage_frames = 0
+        self.rejected = {"extended_ids": 0, "remote_frames": 0, "wrong_length": 0, "crc_errors": 0,
+                         "out_of_range": 0, "repeated": 0, "behind": 0}
         self.missed_answers = 0
         self.status_frames = 0
         self.last_state = None
-        # sensor frame sent -> voltage frame received, seconds (lockstep pace only)
+        self.fallbacks = 0                 # times the DAQ fell back to bias on its own
+        self.falling_back = False
+        self._last_valid = None            # time.monotonic() of the latest valid voltage frame
+        self._fallback_start = 0.0
         self.latencies_s = np.full(latency_samples, np.nan)
         self.stop_event = threading.Event()
         self._thread: threading.Thread | None = None
 
     # -- one sample ----------------------------------------------------------------------------------
+    def _send(self, frame_id: int, data: bytes) -> None:
+        self.bus.send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=False))
+
     def _send_sample(self) -> None:
         c = self.contract
         strains, load = self.plant.measure()
@@ -70,35 +102,85 @@ class CanPlantEmulator:
             lv = self._load_values
             lv[c.load.index("axial_load")] = min(max(load, -500.0), 6000.0)
             lv[c.load.index("sequence")] = (self.samples // c.load.divisor) & 0xFF
-            self.bus.send(can.Message(arbitration_id=c.load.frame_id, data=c.load.encode(lv),
-                                      is_extended_id=False))
+            self._send(c.load.frame_id, c.load.encode(lv))
         v = self._strain_values
+        limit = self._strain_limit          # a gauge beyond full scale is sent at full scale
         for k, i in enumerate(self._strain_order):
-            v[i] = min(max(float(strains[k]), -0.004), 0.004)
-        v[c.strains.index("sequence")] = self.samples & 0xFF
-        self.bus.send(can.Message(arbitration_id=c.strains.frame_id, data=c.strains.encode(v),
-                                  is_extended_id=False))
+            v[i] = min(max(float(strains[k]), -limit), limit)
+        seq = self.samples % c.strains.sequence_modulus
+        v[c.strains.index("sequence")] = seq
+        data = c.strains.encode(v)
+        self._sent_at[seq] = time.time()
+        self._send(c.strains.frame_id, data)
 
     def _take(self, msg: can.Message) -> int | None:
-        """Apply a received frame; for a voltage frame, return its sequence (the low four bits
-        of the sample it answers), else None."""
+        """Apply a received frame; for a valid voltage frame, return its sequence (the sample it
+        answers), else None."""
         c = self.contract
         if msg.is_error_frame:
             return None
-        if msg.arbitration_id == c.voltages.frame_id and msg.dlc == c.voltages.length:
-            if c.voltages.decode_into(msg.data, self._decoded):
-                for k, i in enumerate(self._voltage_order):
-                    self._voltages[k] = self._decoded[i]
-                self.voltage_frames += 1
-                return int(self._decoded[self._voltage_sequence])
-        elif msg.arbitration_id == c.status.frame_id:
+        frame_id = msg.arbitration_id
+        if frame_id not in (c.voltages.frame_id, c.status.frame_id):
+            return None
+        rejected = self.rejected
+        if msg.is_extended_id:
+            rejected["extended_ids"] += 1
+            return None
+        if msg.is_remote_frame:
+            rejected["remote_frames"] += 1
+            return None
+        codec = c.voltages if frame_id == c.voltages.frame_id else c.status
+        values = self._decoded if codec is c.voltages else self._status_values
+        if msg.dlc != codec.length or len(msg.data) != codec.length:
+            rejected["wrong_length"] += 1
+            return None
+        if not codec.crc_ok(msg.data):
+            rejected["crc_errors"] += 1
+            return None
+        if not codec.decode_into(msg.data, values):
+            rejected["out_of_range"] += 1
+            return None
+        if codec is c.status:
             self.status_frames += 1
-            values = [0] * len(c.status.names)
-            c.status.decode_into(msg.data, values)
             self.last_state = int(values[c.status.index("state")])
-        return None
+            return None
+        counter = self._voltage_counter
+        seq = int(self._decoded[self._voltage_sequence])
+        kind = counter.accept(seq, time.monotonic())
+        if kind != NEW:
+            rejected["repeated" if kind == REPEATED else "behind"] += 1
+            return None
+        for k, i in enumerate(self._voltage_order):
+            self._voltages[k] = self._decoded[i]
+        self.voltage_frames += 1
+        self._last_valid = time.monotonic()
+        self.falling_back = False
+        sent = self._sent_at[seq]
+        index = self.samples - ((self.samples - seq) % c.strains.sequence_modulus)
+        if 0 <= index < len(self.latencies_s) and sent == sent:
+            self.latencies_s[index] = msg.timestamp - sent
+        return seq
+
+    def _fall_back(self) -> None:
+        """The DAQ's duty: no valid voltage frame for the silence time-out, ramp to bias."""
+        if self._last_valid is None:
+            return
+        now = time.monotonic()
+        if not self.falling_back:
+            if now - self._last_valid <= self.silence_timeout_s:
+                return
+            self.falling_back = True
+            self.fallbacks += 1
+            self._fallback_start = now
+            self._fallback_from[:] = self._voltages
+        elapsed = now - self._fallback_start
+        remaining = max(0.0, 1.0 - elapsed / self.fallback_ramp_s) if self.fallback_ramp_s > 0 else 0.0
+        np.subtract(self._fallback_from, self._bias, out=self._voltages)
+        self._voltages *= remaining
+        self._voltages += self._bias
 
     def _step_plant(self) -> None:
+        self._fall_back()
         self.plant.step(self._force_matrix @ (self._voltages - self._bias))
         self.samples += 1
         if self.on_step is not None:
@@ -107,8 +189,9 @@ class CanPlantEmulator:
     def _await_answer(self) -> bool:
         """Lockstep: take frames until the voltage frame answering the sample just sent (True),
         or until ``answer_timeout_s`` or a stop request (False). A late answer to an earlier
-        sample is applied (the stacks take the latest voltages) but does not end the wait."""
-        expected = self.samples & 0xF
+        sample is not applied: its sequence is behind the newest one applied, or, if nothing
+        newer came, it is applied as the latest voltages but does not end the wait."""
+        expected = self.samples % self.contract.strains.sequence_modulus
         deadline = time.monotonic() + self.answer_timeout_s
         while not self.stop_event.is_set():
             remaining = deadline - time.monotonic()
@@ -125,11 +208,9 @@ class CanPlantEmulator:
         self.plant.reset()
         start = time.monotonic()
         while not self.stop_event.is_set() and (max_samples is None or self.samples < max_samples):
-            sent = time.perf_counter()
             self._send_sample()
             if self.pace == "lockstep":
-                if self._await_answer() and self.samples < len(self.latencies_s):
-                    self.latencies_s[self.samples] = time.perf_counter() - sent
+                self._await_answer()
             else:
                 next_time = start + (self.samples + 1) * self.period_s
                 while True:

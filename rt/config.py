@@ -43,7 +43,12 @@ CONTROLLER_DEFAULTS: dict[str, Any] = {
     "safety": {
         "strain_limit_fraction": 0.5,   # of the proportional-limit strain sigma_p / E
         "load_range_n": [-200.0, 5000.0],  # load-cell range; the gain table's range applies too
-        "stale_periods": 5,
+        "stale_periods": 5,             # periods of time without a valid sample before a fault
+        # latency budget: a sample's answer (its voltages) must be sent within this many periods
+        # of the sample's arrival on the bus; half a period is what the shipped design assumes
+        # (its I/O chain's delay), and a streak of late answers is a fault
+        "answer_budget_periods": 0.5,
+        "late_answer_streak": 10,
         "overrun_streak": 10,
         "saturation_time_s": 0.5,       # continuous saturation before a fault
         "ramp_time_s": 0.5,             # to ramp the voltages to bias on a fault or stop
@@ -81,6 +86,8 @@ _SCHEMA = {
         "strain_limit_fraction": number(low=0.0, high=1.0, low_open=True),
         "load_range_n": number_list(number("N"), 2, "loads [low, high]"),
         "stale_periods": integer(low=1),
+        "answer_budget_periods": number(low=0.0, high=100.0, low_open=True),
+        "late_answer_streak": integer(low=1),
         "overrun_streak": integer(low=1),
         "saturation_time_s": positive("s"),
         "ramp_time_s": positive("s"),
@@ -107,6 +114,8 @@ class Safety:
     overrun_streak: int
     saturation_time: float              # s, key safety.saturation_time_s
     ramp_time: float                    # s, key safety.ramp_time_s
+    answer_budget_periods: float = 0.5
+    late_answer_streak: int = 10
 
 
 @dataclass(frozen=True)
@@ -160,5 +169,7 @@ def controller_config(overrides: dict[str, Any] | None = None, source: str = "",
                             orientation_deg=a["orientation_deg"]),
         safety=Safety(strain_limit_fraction=s["strain_limit_fraction"], load_range=s["load_range_n"],
                       stale_periods=s["stale_periods"], overrun_streak=s["overrun_streak"],
+                      answer_budget_periods=s["answer_budget_periods"],
+                      late_answer_streak=s["late_answer_streak"],
                       saturation_time=s["saturation_time_s"], ramp_time=s["ramp_time_s"]),
         telemetry=Telemetry(**v["telemetry"]), realtime=Realtime(**v["realtime"]))

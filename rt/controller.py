@@ -44,6 +44,10 @@ RECORD_COLUMNS = (
     + ["force_y_A_N", "force_z_A_N", "force_y_B_N", "force_z_B_N"]
     + [f"voltage_{s}_V" for s in ("a1", "a2", "a3", "b1", "b2", "b3")]
     + ["scale_A", "scale_B", "step_us"]
+    # timing of the link: time between this sample's arrival and the previous one's, the age of
+    # this sample when its answer was sent (NaN where the HAL does not measure it), and the
+    # count of late answers so far (rt/safety.py)
+    + ["input_period_us", "answer_age_us", "late_answers"]
     + SIGNAL_COLUMNS
 )
 COL = {name: i for i, name in enumerate(RECORD_COLUMNS)}
@@ -54,6 +58,8 @@ I_TIME, I_SEQUENCE, I_STATE, I_FAULT, I_FLAGS = (COL[n] for n in ("time_s", "seq
                                                                   "fault", "flags"))
 I_LOAD, I_LOAD_FILTERED = COL["load_N"], COL["load_filtered_N"]
 I_SCALE_A, I_SCALE_B, I_STEP_US = COL["scale_A"], COL["scale_B"], COL["step_us"]
+I_INPUT_PERIOD_US, I_ANSWER_AGE_US, I_LATE_ANSWERS = (COL[n] for n in ("input_period_us", "answer_age_us",
+                                                                       "late_answers"))
 
 # flag bits
 FLAG_SATURATED_A = 1
@@ -73,8 +79,8 @@ class Controller:
 
     Lifecycle: ``arm(sample)`` (stacks at bias), ``start()`` (bumpless: integrator zero,
     compensator at rest on the current sample, voltages faded in from bias), ``step(sample)``
-    once per sample (``step(None)`` when the sample is missing: the voltages hold until the
-    stale-input fault), ``fault(...)``, ``request_stop()``, ``rearm()``.
+    once per sample (``step(None, silent_periods)`` when the sample is missing: the voltages hold
+    until the stale-input fault), ``fault(...)``, ``request_stop()``, ``rearm()``.
     """
 
     def __init__(self, table: GainTable, config: ControllerConfig) -> None:
@@ -144,6 +150,7 @@ class Controller:
         self.applied_forces[:] = 0.0
         self.safety.clear()
         self.allocator.scale_a = self.allocator.scale_b = 1.0
+        self.record[I_TIME] = np.nan if sample is None else sample.timestamp
         if sample is not None:
             self.schedule.reset(sample.axial_load)
             self.strains[:] = sample.strains
@@ -172,17 +179,21 @@ class Controller:
         self.safety.trip(fault, detail)
 
     # -- the step ---------------------------------------------------------------------------------
-    def step(self, sample: Sample | None) -> np.ndarray:
-        """One control period. ``sample`` None means no new sample arrived. Returns the six
+    def step(self, sample: Sample | None, silent_periods: float | None = None) -> np.ndarray:
+        """One control period. ``sample`` None means no new sample arrived; ``silent_periods`` is
+        then the time since the last one in periods (None: one more period). Returns the six
         voltages to write (the controller's own array)."""
         r = self.record
         r[I_FLAGS] = 0.0
+        r[I_ANSWER_AGE_US] = np.nan
         safety = self.safety
         if sample is None:
             r[I_FLAGS] = FLAG_NO_NEW_SAMPLE
-            safety.sample_missing()
+            r[I_INPUT_PERIOD_US] = np.nan
+            safety.sample_missing(silent_periods)
         else:
             safety.sample_arrived(sample.timestamp)
+            r[I_INPUT_PERIOD_US] = (sample.timestamp - r[I_TIME]) * 1e6
             r[I_TIME] = sample.timestamp
             r[I_SEQUENCE] = sample.sequence
             self.strains[:] = sample.strains

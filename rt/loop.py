@@ -7,8 +7,17 @@ Pacing:
   of catch-up cycles. A streak of overruns is a fault (rt.safety counts it).
 - ``sample``: one step per new sample from the HAL, so a DAQ streaming at its own clock (or
   a simulated plant in simulated time) sets the rate. Each sample is answered by exactly one
-  write; a read time-out writes only while the voltages ramp to bias (an unchanged answer
-  repeated would reach the DAQ as the answer to its next sample, one sample late).
+  write; a read time-out writes only while the voltages ramp to bias (a backend whose answers
+  pair with samples, CAN, sends nothing for it). Without a valid sample for ``stale_periods``
+  periods of time (measured on the loop's clock) a running controller faults.
+
+Each answer's age (the sample's arrival to the send call, where the HAL measures it) is checked
+against the latency budget (rt/safety.py) and recorded with the sample.
+
+Start-up order: real-time set-up (SCHED_FIFO, memory lock, the garbage collector collected and
+frozen) first, then the HAL is opened (if the caller has not), then whatever the HAL queued
+before the controller was ready is discarded and counted, and the first fresh sample arms.
+At the end the final state is announced to the hardware (the DAQ sees STOPPED or FAULT).
 
 SIGINT and SIGTERM ask for a stop: the voltages ramp to bias, telemetry is flushed, and
 ``run`` returns normally; ``RunResult.signal_received`` names the signal, so that the caller
@@ -25,7 +34,17 @@ from dataclasses import dataclass, field
 
 from beamctl.hal.base import HalBase, HalError, HalStaleData
 from beamctl.rt import realtime
-from beamctl.rt.controller import FLAG_RAMPING_TO_BIAS, I_FAULT, I_FLAGS, I_STATE, I_STEP_US, Controller
+from beamctl.rt.controller import (
+    FLAG_RAMPING_TO_BIAS,
+    I_ANSWER_AGE_US,
+    I_FAULT,
+    I_FLAGS,
+    I_INPUT_PERIOD_US,
+    I_LATE_ANSWERS,
+    I_STATE,
+    I_STEP_US,
+    Controller,
+)
 from beamctl.rt.safety import Fault, State
 from beamctl.rt.telemetry import TelemetryWriter
 from beamctl.rt.timing import LoopTiming
@@ -42,6 +61,7 @@ class RunResult:
     telemetry: dict = field(default_factory=dict)
     realtime: dict = field(default_factory=dict)
     hal: dict = field(default_factory=dict)
+    backlog_discarded: int = 0    # samples queued before the first read, dropped unanswered
     signal_received: str = ""     # SIGINT or SIGTERM during the run, even after another stop request
 
 
@@ -72,6 +92,7 @@ class ControlLoop:
         self.timing = LoopTiming()
         self.period = controller.period
         self.cycles = 0
+        self.backlog_discarded = 0
         self._stop_signal = ""
         self._signal_received = ""
 
@@ -100,12 +121,15 @@ class ControlLoop:
         try:
             if acquire_rt:
                 rt_report = realtime.acquire(self.controller.config.realtime, require_rt)
+            self.hal.open()             # after the real-time set-up: nothing queues meanwhile
             self._arm()
             try:
                 self._cycle_until_done()
             except BaseException:       # a bug, or an exit from a callback: the stacks first
                 self._emergency_ramp()
                 raise
+            finally:
+                self._announce()
         finally:
             if acquire_rt:
                 realtime.release()
@@ -122,11 +146,24 @@ class ControlLoop:
         return RunResult(state=c.state.name, fault=c.supervisor.fault.name, reason=c.supervisor.reason(),
                          cycles=self.cycles, stop_requested_by=self._stop_signal,
                          timing=timing, telemetry=tel, realtime=rt_report,
-                         hal=self.hal.status(), signal_received=self._signal_received)
+                         hal=self.hal.status(), signal_received=self._signal_received,
+                         backlog_discarded=self.backlog_discarded)
+
+    def _announce(self) -> None:
+        """Tell the hardware the final state now (the DAQ sees STOPPED, or the fault)."""
+        c = self.controller
+        try:
+            self.hal.announce(c.state, c.supervisor.fault, int(c.record[I_FLAGS]))
+        except HalError:
+            pass            # the HAL is gone: the DAQ falls back on the silence
 
     def _arm(self) -> None:
         c = self.controller
+        full_scale = self.hal.strain_full_scale
+        if full_scale is not None:
+            c.safety.cap_strain_limit(full_scale, getattr(self.hal, "strain_lsb", 0.0))
         try:
+            self.backlog_discarded = self.hal.discard_backlog()
             first = self.hal.read(timeout=max(1.0, 20 * self.period))
         except HalError as exc:
             c.arm(None)
@@ -166,12 +203,15 @@ class ControlLoop:
 
     def _cycle_until_done(self) -> None:
         c, hal, timing, clock = self.controller, self.hal, self.timing, self.clock
+        safety = c.safety
         tel = self.telemetry
         period = self.period
         timer = self.pacing == "timer"
         read_timeout = 0.5 * period if timer else 1.5 * period
+        stale_s = c.config.safety.stale_periods * period
         record = c.record
         next_deadline = clock() + period
+        self._last_sample = clock()         # the arming sample
         previous_start = None
         while True:
             if self._stop_signal and c.state not in (State.STOPPING, State.STOPPED):
@@ -182,14 +222,20 @@ class ControlLoop:
             if previous_start is not None:
                 timing.cycle.record(t0 - previous_start)   # start to start
             previous_start = t0
+            timeout = read_timeout
+            if not timer and c.state == State.RUNNING:
+                # wait no longer than the stale-input deadline (and a little, to see it pass)
+                timeout = min(read_timeout, max(self._last_sample + stale_s - t0, 0.1 * period))
             try:
-                sample = hal.read(timeout=read_timeout)
+                sample = hal.read(timeout=timeout)
             except HalStaleData:
                 sample = None
             except HalError as exc:
                 sample = None
                 c.fault(Fault.HAL_ERROR, str(exc))
             t1 = clock()
+            if sample is not None:
+                self._last_sample = t1
             if self._rearm_requested:
                 # honoured once the ramp has reached bias (kept pending until then)
                 if c.state == State.RUNNING or self._stop_signal:
@@ -198,7 +244,10 @@ class ControlLoop:
                     self._rearm_requested = False
                     c.rearm(sample)
                     c.start()
-            voltages = c.step(sample)
+            if sample is None and not timer:
+                voltages = c.step(None, (t1 - self._last_sample) / period)
+            else:
+                voltages = c.step(sample)
             t2 = clock()
             flags = int(record[I_FLAGS])
             if timer or sample is not None or flags & FLAG_RAMPING_TO_BIAS:
@@ -207,6 +256,17 @@ class ControlLoop:
                     hal.write(voltages)
                 except HalError as exc:
                     c.fault(Fault.HAL_ERROR, f"write: {exc}")
+                else:
+                    age = hal.answer_age_s
+                    if sample is not None and age == age:
+                        record[I_ANSWER_AGE_US] = age * 1e6
+                        timing.answer_age.record(age)
+                        safety.answer_sent(age)
+                        record[I_LATE_ANSWERS] = safety.late_answers
+                        record[I_STATE] = c.state
+                        record[I_FAULT] = c.supervisor.fault
+                if sample is not None and record[I_INPUT_PERIOD_US] > 0:
+                    timing.input_period.record(record[I_INPUT_PERIOD_US] * 1e-6)
             t3 = clock()
             record[I_STEP_US] = (t2 - t1) * 1e6
             if tel is not None:

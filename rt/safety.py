@@ -1,6 +1,6 @@
 """Safety, in one place: the lifecycle and its latched fault (as in ros2_control's lifecycle),
-the input checks, the counts of saturated samples, missing samples and overrun cycles that end
-in a fault, and the one ramp to bias that faults, stops and the loop's emergency exit use.
+the input checks, the counts of saturated samples, missing samples, late answers and overrun
+cycles that end in a fault, and the one ramp to bias that faults, stops and the loop's emergency exit use.
 
     INIT --arm--> ARMED --start--> RUNNING --fault--> FAULT --rearm--> ARMED
                                      |  \\--stop--> STOPPING --(ramp done)--> STOPPED
@@ -42,6 +42,7 @@ class Fault(enum.IntEnum):
     PERSISTENT_SATURATION = 8
     HAL_ERROR = 9
     OPERATOR = 10
+    LATE_ANSWERS = 11
 
 
 DESCRIPTIONS = {
@@ -51,11 +52,12 @@ DESCRIPTIONS = {
     Fault.LOAD_NOT_FINITE: "the load-cell reading is not a finite number",
     Fault.LOAD_OUT_OF_SENSOR_RANGE: "the load-cell reading is outside the sensor range",
     Fault.LOAD_OUT_OF_TABLE_RANGE: "the axial load is outside the gain table's load range",
-    Fault.STALE_INPUT: "no new sample for too many periods",
+    Fault.STALE_INPUT: "no valid sample for too many periods of time",
     Fault.OVERRUN_STREAK: "too many consecutive overruns of the control period",
     Fault.PERSISTENT_SATURATION: "the stack voltages stayed saturated for too long",
     Fault.HAL_ERROR: "the hardware abstraction reported an error",
     Fault.OPERATOR: "stopped by the operator",
+    Fault.LATE_ANSWERS: "a streak of samples was answered later than the latency budget",
 }
 
 
@@ -171,6 +173,10 @@ class Safety:
         self._saturation_limit = max(1, round(settings.saturation_time * sample_rate_hz))
         self._stale_limit = settings.stale_periods
         self._overrun_limit = settings.overrun_streak
+        self.answer_budget_s = settings.answer_budget_periods / sample_rate_hz
+        self._late_limit = settings.late_answer_streak
+        self.late_answers = 0
+        self.late_streak = 0
         self.time_s = 0.0                 # time stamp of the latest sample, recorded with a fault
         self.saturated_samples = 0
         self.missing_samples = 0
@@ -183,6 +189,7 @@ class Safety:
         self.ramp.reset()
         self.saturated_samples = 0
         self.missing_samples = 0
+        self.late_streak = 0
 
     # -- faults and stops -------------------------------------------------------------------------
     def trip(self, fault: Fault, detail: str = "") -> None:
@@ -212,12 +219,35 @@ class Safety:
         self.missing_samples = 0
         self.time_s = time_s
 
-    def sample_missing(self) -> None:
-        """No new sample this period: the ``stale_periods``-th in a row faults a running
-        controller."""
+    def sample_missing(self, silent_periods: float | None = None) -> None:
+        """No new sample this cycle. ``silent_periods``: the time since the last valid sample, in
+        periods, as the caller measured it; None counts one period per call (a timer-paced loop
+        ticks once a period). ``stale_periods`` of silence fault a running controller."""
         self.missing_samples += 1
-        if self.missing_samples >= self._stale_limit and self.supervisor.state == State.RUNNING:
-            self.trip(Fault.STALE_INPUT, f"{self.missing_samples} periods without a sample")
+        silent = self.missing_samples if silent_periods is None else silent_periods
+        if silent >= self._stale_limit and self.supervisor.state == State.RUNNING:
+            self.trip(Fault.STALE_INPUT, f"{silent:.1f} periods without a valid sample")
+
+    def answer_sent(self, age_s: float) -> None:
+        """The answer to the latest sample was sent ``age_s`` after the sample arrived (NaN: not
+        measured). Beyond the budget it is late; ``late_answer_streak`` late answers in a row
+        fault a running controller."""
+        if not age_s <= self.answer_budget_s:
+            if age_s != age_s:
+                return
+            self.late_answers += 1
+            self.late_streak += 1
+            if self.late_streak >= self._late_limit and self.supervisor.state == State.RUNNING:
+                self.trip(Fault.LATE_ANSWERS, f"{self.late_streak} answers in a row later than "
+                                              f"{self.answer_budget_s * 1e6:.0f} us, the last "
+                                              f"{age_s * 1e6:.0f} us")
+        else:
+            self.late_streak = 0
+
+    def cap_strain_limit(self, full_scale: float, resolution: float) -> None:
+        """The sensor cannot report strains beyond ``full_scale`` (it clips there): a reading
+        within one ``resolution`` step of full scale is out of range too."""
+        self.strain_limit = min(self.strain_limit, full_scale - 0.5 * resolution)
 
     def check_inputs(self, strains: np.ndarray, load_n: float) -> None:
         """Fault on a non-finite strain or one beyond the strain limit, then on a load-cell value

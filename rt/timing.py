@@ -51,20 +51,24 @@ class StageTimer:
         us = 1e6
         return {"count": self.count, "last_us": self.last_s * us, "max_us": self.max_s * us,
                 "mean_us": (self.total_s / self.count * us) if self.count else math.nan,
-                "p50_us": self.percentile(50) * us, "p99_us": self.percentile(99) * us}
+                "p50_us": self.percentile(50) * us, "p99_us": self.percentile(99) * us,
+                "p99.9_us": self.percentile(99.9) * us}
 
 
 class LoopTiming:
-    """The stages of one cycle plus the count of overruns and the periods they skipped (the
-    streak that faults is counted by rt.safety)."""
+    """The stages of one cycle, the link's timing (each answer's age, the period of the incoming
+    samples, where the HAL measures them), plus the count of overruns and the periods they
+    skipped (the streaks that fault are counted by rt.safety)."""
 
-    STAGES = ("read", "compute", "write", "cycle")
+    STAGES = ("read", "compute", "write", "cycle", "answer_age", "input_period")
 
     def __init__(self) -> None:
         self.read = StageTimer("read")
         self.compute = StageTimer("compute")
         self.write = StageTimer("write")
         self.cycle = StageTimer("cycle")
+        self.answer_age = StageTimer("answer_age")
+        self.input_period = StageTimer("input_period")
         self.overruns = 0          # cycles that ended after their deadline
         self.missed_periods = 0    # periods skipped after overruns
 

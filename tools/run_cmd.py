@@ -2,8 +2,8 @@
 
 Loads and validates the config and the gain table (whose model hash must match the
 configured model, whose content must match its own hash, and whose closed-loop check must
-have passed), checks the bus budget (CAN), arms, runs until SIGINT/SIGTERM, writes
-telemetry. A fault ramps the stacks to bias and holds them there, latched, until the operator
+have passed), checks the bus budget (CAN), starts telemetry, takes the real-time set-up, opens
+the HAL, discards what queued before it was ready, arms, runs until SIGINT/SIGTERM. A fault ramps the stacks to bias and holds them there, latched, until the operator
 re-arms with SIGUSR1 (``systemctl kill -s USR1 beamctl``) or stops the service. Under systemd
 it reports readiness and feeds the watchdog from the control loop.
 """
@@ -86,20 +86,12 @@ def run(args: argparse.Namespace) -> int:
     # the banner goes to stderr with the other messages: stdout carries the summary alone
     print(f"beamctl run: {cfg.hal.backend} backend, {table.design.sample_rate_hz:g} Hz, "
           f"{cfg.controller.pacing} pacing, gain table {cfg.table_path}, telemetry {path}", file=sys.stderr)
-    try:
-        hal.open()
-    except HalError as exc:
-        print(f"beamctl run: error: {exc}", file=sys.stderr)
-        return 2
-    # Telemetry starts once the HAL is open (no empty recording of a run that never started)
-    # and before the loop asks for SCHED_FIFO (the writer thread must not inherit it).
-    try:
-        telemetry = TelemetryWriter.for_controller(
-            path, controller, meta={"config": cfg.source, "gain_table": str(cfg.table_path),
-                                    "model_sha256": table.model_sha256, "backend": cfg.hal.backend}).start()
-    except BaseException:
-        hal.close()
-        raise
+    # Telemetry starts before the loop asks for SCHED_FIFO (the writer thread must not inherit
+    # it); the loop then takes its real-time set-up and only after it opens the HAL, so that no
+    # sample queues up while memory is locked and the collector runs.
+    telemetry = TelemetryWriter.for_controller(
+        path, controller, meta={"config": cfg.source, "gain_table": str(cfg.table_path),
+                                "model_sha256": table.model_sha256, "backend": cfg.hal.backend}).start()
 
     def on_cycle(loop: ControlLoop) -> None:
         notifier.feed()
@@ -112,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     notifier.ready(f"running at {table.design.sample_rate_hz:g} Hz")
     try:
         result = loop.run(require_rt=args.require_rt)
-    except realtime.RealtimeError as exc:
+    except (realtime.RealtimeError, HalError) as exc:
         if telemetry.written == 0:      # refused before the first sample: no recording to keep
             path.unlink(missing_ok=True)
         print(f"beamctl run: error: {exc}", file=sys.stderr)

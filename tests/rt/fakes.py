@@ -42,7 +42,9 @@ class ScriptedHal(HalBase):
         while callable(step):
             step()
             step = self.script.pop(0) if self.script else self._default()
-        if step is None:
+        if step is None:            # nothing within the time-out: as a real bus, the time passes
+            if timeout:
+                time.sleep(timeout)
             return False
         if isinstance(step, Exception):
             raise step
