@@ -148,8 +148,8 @@ class HalBase(abc.ABC):
         if self.is_open:
             self._announce()
 
-    def _announce(self) -> None:
-        pass
+    def _announce(self) -> None:  # noqa: B027 (a hook: backends without a status channel keep it empty)
+        """Send the published status to the hardware now (backends that report it)."""
 
     def publish_status(self, state: int, fault: int, flags: int = 0) -> None:
         """The controller's safety state, latched fault and flags, for backends that report

@@ -4,7 +4,9 @@ Each sample it sends ``DAQ_Strains`` (and every ``SampleDivisor`` samples ``DAQ_
 the strains), then applies the latest valid ``CTRL_Voltages`` it received and advances the
 plant one sample. It keeps the DAQ's side of the contract (hal/beamctl.dbc): a voltage frame is
 applied only if it is a standard data frame of the right length with a good CRC and a new
-sequence (hal/e2e.py), everything else is counted and dropped; when no valid voltage frame has
+sequence, everything else is counted and dropped (a voltage frame's sequence names the sample it
+answers: the DAQ knows which samples it sent, so "new" means an answer to a sample of the last
+half counter span that is later than the one applied last); when no valid voltage frame has
 arrived for ``silence_timeout_s`` (the DBC's ``SilenceTimeoutMs``) it ramps the stacks linearly to
 bias within ``fallback_ramp_s`` (``FallbackRampMs``) by itself, and holds bias until valid frames
 come again.
@@ -32,13 +34,11 @@ import can
 import numpy as np
 
 from beamctl.hal.dbc import STRAIN_SIGNALS, VOLTAGE_SIGNALS, Contract
-from beamctl.hal.e2e import NEW, REPEATED, AliveCounter
 from beamctl.models.actuators import StackGeometry
 from beamctl.models.plant import Plant
 
 PACES = ("wallclock", "lockstep")
 WAIT_SLICE_S = 0.05        # a lockstep wait looks at the stop request this often
-RESYNC_PERIODS = 100       # as the controller's side (hal/can_backend.py)
 
 
 class CanPlantEmulator:
@@ -69,7 +69,8 @@ class CanPlantEmulator:
         self._decoded = [0.0] * len(c.voltages.names)
         self._voltage_order = c.voltages.order(VOLTAGE_SIGNALS)
         self._voltage_sequence = c.voltages.index("sequence")
-        self._voltage_counter = AliveCounter(c.voltages.sequence_modulus, RESYNC_PERIODS * self.period_s)
+        self._modulus = c.strains.sequence_modulus
+        self._last_applied = -1            # index of the sample whose answer was applied last
         self._strain_order = c.strains.order(STRAIN_SIGNALS)
         self._strain_values = [0.0] * len(c.strains.names)
         self._strain_limit = c.strains.signals[self._strain_order[0]].maximum
@@ -144,19 +145,22 @@ class CanPlantEmulator:
             self.status_frames += 1
             self.last_state = int(values[c.status.index("state")])
             return None
-        counter = self._voltage_counter
         seq = int(self._decoded[self._voltage_sequence])
-        kind = counter.accept(seq, time.monotonic())
-        if kind != NEW:
-            rejected["repeated" if kind == REPEATED else "behind"] += 1
+        ago = (self.samples - seq) % self._modulus        # samples since the one it answers
+        index = self.samples - ago
+        if ago >= self._modulus // 2 or index < self._last_applied:
+            rejected["behind"] += 1
             return None
+        if index == self._last_applied:
+            rejected["repeated"] += 1
+            return None
+        self._last_applied = index
         for k, i in enumerate(self._voltage_order):
             self._voltages[k] = self._decoded[i]
         self.voltage_frames += 1
         self._last_valid = time.monotonic()
         self.falling_back = False
         sent = self._sent_at[seq]
-        index = self.samples - ((self.samples - seq) % c.strains.sequence_modulus)
         if 0 <= index < len(self.latencies_s) and sent == sent:
             self.latencies_s[index] = msg.timestamp - sent
         return seq

@@ -3,7 +3,8 @@
 Loads and validates the config and the gain table (whose model hash must match the
 configured model, whose content must match its own hash, and whose closed-loop check must
 have passed), checks the bus budget (CAN), starts telemetry, takes the real-time set-up, opens
-the HAL, discards what queued before it was ready, arms, runs until SIGINT/SIGTERM. A fault ramps the stacks to bias and holds them there, latched, until the operator
+the HAL, discards what queued before it was ready, arms, runs until SIGINT/SIGTERM. A fault
+ramps the stacks to bias and holds them there, latched, until the operator
 re-arms with SIGUSR1 (``systemctl kill -s USR1 beamctl``) or stops the service. Under systemd
 it reports readiness and feeds the watchdog from the control loop.
 """

@@ -1,4 +1,8 @@
-"""The CAN plant emulator in lockstep: each plant step applies the answer to its own sample."""
+"""The CAN plant emulator: in lockstep each plant step applies the answer to its own sample; as
+the DAQ it applies only valid, new voltage frames and falls back to bias by itself when the
+controller falls silent."""
+
+import time
 
 import can
 import numpy as np
@@ -9,10 +13,12 @@ from tests.hal.rigs import GEOMETRY, make_plant
 CONTRACT = Contract()
 
 
-def _answer(bus, sequence: int, volts: float) -> None:
-    values = [volts] * 6 + [sequence & 0xF]      # volts: a multiple of the 0.15 V resolution
-    bus.send(can.Message(arbitration_id=CONTRACT.voltages.frame_id,
-                         data=CONTRACT.voltages.encode(values), is_extended_id=False))
+def _answer(bus, sequence: int, volts: float, crc_error: bool = False) -> None:
+    values = [volts] * 6 + [sequence & 0xFF, 0]      # volts: a multiple of the 0.6 V resolution
+    data = bytearray(CONTRACT.voltages.encode(values))
+    if crc_error:
+        data[-1] ^= 0x01
+    bus.send(can.Message(arbitration_id=CONTRACT.voltages.frame_id, data=bytes(data), is_extended_id=False))
 
 
 def _next_strain_sequence(bus) -> int:
@@ -52,3 +58,79 @@ def test_a_late_answer_is_applied_but_never_taken_for_the_next_sample_s_answer()
         controller_bus.shutdown()
     assert emulator.missed_answers == 1
     np.testing.assert_array_equal([s[0] for s in steps], [90.0, 90.0, 60.0])
+
+
+def test_only_valid_new_voltage_frames_move_the_stacks():
+    """As the DAQ: a wrong CRC, a repeat and an old frame are counted and never applied."""
+    from beamctl.hal.emulator import CanPlantEmulator
+
+    steps = []
+    emulator_bus = can.Bus(interface="virtual", channel="emulator-valid")
+    controller_bus = can.Bus(interface="virtual", channel="emulator-valid")
+    emulator = CanPlantEmulator(emulator_bus, make_plant(), GEOMETRY, pace="lockstep", answer_timeout_s=0.3,
+                                on_step=lambda plant, v: steps.append(v.copy()))
+    try:
+        emulator.start(max_samples=4)
+        assert _next_strain_sequence(controller_bus) == 0
+        _answer(controller_bus, 0, 90.0)
+        assert _next_strain_sequence(controller_bus) == 1
+        _answer(controller_bus, 1, 120.0, crc_error=True)       # bit error: dropped, not an answer
+        assert _next_strain_sequence(controller_bus) == 2
+        _answer(controller_bus, 0, 30.0)                         # a repeat of sample 0's
+        _answer(controller_bus, 2, 60.0)
+        _answer(controller_bus, 2, 150.0)                        # a repeat
+        _answer(controller_bus, 1, 30.0)                         # old: behind sample 2's
+        assert _next_strain_sequence(controller_bus) == 3
+        _answer(controller_bus, 3, 66.0)
+        emulator.join(timeout=5.0)
+    finally:
+        emulator.stop()
+        emulator_bus.shutdown()
+        controller_bus.shutdown()
+    np.testing.assert_array_equal([s[0] for s in steps], [90.0, 90.0, 60.0, 66.0])
+    assert emulator.rejected["crc_errors"] == 1
+    assert (emulator.rejected["behind"], emulator.rejected["repeated"]) == (1, 2), emulator.rejected
+
+
+def test_the_daq_ramps_to_bias_by_itself_when_the_controller_falls_silent():
+    """Valid answers at 120 V, then none: after the silence time-out the stacks ramp linearly to
+    the 75 V bias within the fallback ramp time, and stay there."""
+    from beamctl.hal.emulator import CanPlantEmulator
+
+    log = []
+    emulator_bus = can.Bus(interface="virtual", channel="emulator-fallback")
+    controller_bus = can.Bus(interface="virtual", channel="emulator-fallback")
+    silence, ramp = 0.02, 0.1
+    emulator = CanPlantEmulator(emulator_bus, make_plant(), GEOMETRY, pace="wallclock",
+                                silence_timeout_s=silence, fallback_ramp_s=ramp,
+                                on_step=lambda plant, v: log.append((time.monotonic(), v[0])))
+    try:
+        emulator.start()
+        values = [0.0] * len(CONTRACT.strains.names)
+        answered = 0
+        while answered < 200:                   # answer 200 samples, as a controller does
+            msg = controller_bus.recv(1.0)
+            assert msg is not None, "the emulator sent no sample"
+            if msg.arbitration_id == CONTRACT.strains.frame_id:
+                CONTRACT.strains.decode_into(msg.data, values)
+                _answer(controller_bus, int(values[CONTRACT.strains.index("sequence")]), 120.0)
+                answered += 1
+        last_answer = time.monotonic()
+        time.sleep(silence + ramp + 0.1)
+    finally:
+        emulator.stop()
+        emulator_bus.shutdown()
+        controller_bus.shutdown()
+    t = np.array([e[0] for e in log]) - last_answer
+    v = np.array([e[1] for e in log])
+    assert emulator.fallbacks == 1
+    held = v[(t > -0.04) & (t < silence * 0.9)]
+    assert np.all(held == 120.0), "held the last valid voltages within the time-out"
+    assert np.all(v[t > silence + ramp + 0.01] == 75.0), "at bias once the ramp time is over"
+    falling = v[(t > 0) & (v < 120.0)]
+    assert np.all(np.diff(falling) <= 0.0) and falling.size > 5, "a ramp, not a jump"
+    # the ramp starts no earlier than the time-out and is linear in time over the ramp time: no
+    # voltage lies below the line from 120 V at the time-out to 75 V a ramp time later
+    line = 75.0 + 45.0 * np.clip(1.0 - (t - silence) / ramp, 0.0, 1.0)
+    after = t > 0
+    assert np.all(v[after] >= line[after] - 1e-9), "the stacks fell faster than the fallback ramp"

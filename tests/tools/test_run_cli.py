@@ -16,7 +16,7 @@ from beamctl.hal.emulator import CanPlantEmulator
 from beamctl.rt.controller import COL
 from beamctl.rt.telemetry import TelemetryError, read_telemetry
 from beamctl.tools.cli import main
-from tests.hal.rigs import GEOMETRY, IN_PROCESS_STALE_PERIODS, make_plant
+from tests.hal.rigs import GEOMETRY, IN_PROCESS_SAFETY, make_plant
 from tests.tools.processes import beamctl
 
 # the paper's design (integral LQR, 2500 Hz) builds in seconds; the robust check is left out
@@ -91,7 +91,7 @@ def test_service_against_the_plant_emulator_over_virtual_can(tmp_path, capsys):
     emulator = CanPlantEmulator(bus, make_plant(), GEOMETRY, pace="lockstep").start()
     cfg = _config(tmp_path, hal={"backend": "can", "can": {"interface": "virtual", "channel": "service",
                                                             "rate_tolerance": 0.0}},
-                  controller={"pacing": "sample", "safety": {"stale_periods": IN_PROCESS_STALE_PERIODS}},
+                  controller={"pacing": "sample", "safety": IN_PROCESS_SAFETY},
                   run={"telemetry": str(tmp_path / "can.btl"), "duration_s": 0.4})
     try:
         assert main(["run", "--config", cfg, "--json"]) == 0
@@ -101,8 +101,10 @@ def test_service_against_the_plant_emulator_over_virtual_can(tmp_path, capsys):
     summary = json.loads(capsys.readouterr().out)
     assert summary["state"] == "STOPPED", summary["reason"]
     assert summary["hal"]["sequence_gaps"] == 0
-    assert summary["hal"]["bus_load_percent"] == pytest.approx(70.6, abs=0.1)
-    assert emulator.status_frames > 0 and emulator.last_state in (2, 4, 5)
+    assert summary["hal"]["bus_load_percent"] == pytest.approx(
+        100 * bus_budget(Contract(), 2500.0, 1e6).load, rel=1e-9), "classic CAN at 1 Mbit/s, 2500 Hz"
+    assert emulator.status_frames > 0
+    assert emulator.last_state == 5, "the DAQ's last word from the controller is STOPPED"
 
 
 @pytest.mark.parametrize(("sections", "new_key"), [
