@@ -22,8 +22,12 @@ class ScriptedHal(HalBase):
 
     def __init__(self, sample_rate_hz: float, script: list[Step] | None = None,
                  default: tuple = ((0.0, 0.0, 0.0, 0.0), 1000.0), write_delay: float = 0.0,
-                 fail_write_after: int | None = None) -> None:
+                 fail_write_after: int | None = None, sleep: Callable[[float], None] = time.sleep,
+                 answer_ages_s: Callable[[int], float] | None = None) -> None:
         super().__init__(sample_rate_hz)
+        self.sleep = sleep                      # how a read time-out lets its time pass
+        self.answer_ages_s = answer_ages_s      # the age each answer reports, by sequence
+        self.opened: list[str] = []             # what happened, in order (for start-up tests)
         self.script = list(script or [])
         self.default = default
         self.write_delay = write_delay
@@ -32,7 +36,7 @@ class ScriptedHal(HalBase):
         self.sequence = 0
 
     def _open(self) -> None:
-        pass
+        self.opened.append("open")
 
     def _close(self) -> None:
         pass
@@ -44,7 +48,7 @@ class ScriptedHal(HalBase):
             step = self.script.pop(0) if self.script else self._default()
         if step is None:            # nothing within the time-out: as a real bus, the time passes
             if timeout:
-                time.sleep(timeout)
+                self.sleep(timeout)
             return False
         if isinstance(step, Exception):
             raise step
@@ -65,3 +69,6 @@ class ScriptedHal(HalBase):
         if self.write_delay:
             time.sleep(self.write_delay)
         self.written.append(np.array(voltages))
+        if self.answer_ages_s is not None:
+            self.answer_age_s = self.answer_ages_s(self.sequence)
+
