@@ -32,6 +32,11 @@ def add_parser(sub) -> None:
     p.add_argument("--pace", choices=("wallclock", "lockstep"), default="wallclock",
                    help="send at the sample rate (default) or wait for each answer")
     p.add_argument("--duration", type=seconds, default=0.0, metavar="S", help="stop after S plant seconds")
+    p.add_argument("--silence-timeout", type=positive, metavar="S",
+                   help="fall back to bias after S seconds without a valid voltage frame "
+                        "(default: the DBC's SilenceTimeoutMs)")
+    p.add_argument("--fallback-ramp", type=seconds, metavar="S",
+                   help="ramp to bias within S seconds when falling back (default: the DBC's FallbackRampMs)")
     p.set_defaults(run=run_plant)
 
     b = sub.add_parser("bus-budget", help="bus load of the DBC's frames at a sample rate")
@@ -57,14 +62,16 @@ def run_plant(args: argparse.Namespace) -> int:
     except (can.CanError, OSError, ValueError, ImportError) as exc:
         print(f"beamctl plant: error: cannot open {interface}:{channel}: {exc}", file=sys.stderr)
         return 2
-    emulator = CanPlantEmulator(bus, plant, plant_geometry(cfg), pace=args.pace)
+    emulator = CanPlantEmulator(bus, plant, plant_geometry(cfg), pace=args.pace,
+                                silence_timeout_s=args.silence_timeout, fallback_ramp_s=args.fallback_ramp)
     previous = {}
     if threading.current_thread() is threading.main_thread():   # the operator's stop
         for sig in (signal.SIGINT, signal.SIGTERM):
             previous[sig] = signal.signal(sig, lambda *_: emulator.stop_event.set())
     samples = int(args.duration * plant.config.sample_rate_hz) if args.duration else None
     print(f"plant on {interface}:{channel}: {plant.config.sample_rate_hz:g} Hz, {args.pace}, load "
-          f"{plant.config.load.start:g} -> {plant.config.load.end:g} N at {plant.config.load.rate:g} N/s",
+          f"{plant.config.load.start:g} -> {plant.config.load.end:g} N at {plant.config.load.rate:g} N/s; "
+          f"falls back to bias {1e3 * emulator.silence_timeout_s:g} ms after the last valid voltage frame",
           flush=True)
     try:
         emulator.run(samples)
@@ -75,6 +82,7 @@ def run_plant(args: argparse.Namespace) -> int:
     d, angle = plant.deflection()
     print(f"stopped after {emulator.samples} samples ({plant.time:.2f} s plant time), "
           f"{emulator.voltage_frames} voltage frames, {emulator.missed_answers} missed answers, "
+          f"{sum(emulator.rejected.values())} rejected, {emulator.fallbacks} fallbacks to bias, "
           f"load {plant.axial_load:.0f} N, deflection {1e3 * d:.3f} mm at {angle:.0f} deg")
     return 0
 

@@ -116,6 +116,7 @@ def run(args: argparse.Namespace) -> int:
         notifier.stopping()
         hal.close()
     summary = {"state": result.state, "fault": result.fault, "reason": result.reason, "cycles": result.cycles,
+               "late_answers": controller.safety.late_answers, "backlog_discarded": result.backlog_discarded,
                "stopped_by": result.stop_requested_by, "realtime": result.realtime,
                "timing": result.timing, "telemetry": result.telemetry, "hal": result.hal}
     if args.json:
@@ -128,6 +129,13 @@ def run(args: argparse.Namespace) -> int:
               f"{t['compute']['p99_us']:.1f} us, max {t['compute']['max_us']:.1f} us; cycle p50 "
               f"{t['cycle']['p50_us']:.1f} us; {t['overruns']} overruns, "
               f"{t['missed_periods']} missed periods")
+        age = t["answer_age"]
+        if age["count"]:
+            budget_us = cfg.controller.safety.answer_budget_periods * 1e6 / table.design.sample_rate_hz
+            late = controller.safety.late_answers
+            print(f"  answers: age p50 {age['p50_us']:.0f} us, p99 {age['p99_us']:.0f} us, max "
+                  f"{age['max_us']:.0f} us; {late} later than the {budget_us:.0f} us budget; "
+                  f"{result.backlog_discarded} queued samples discarded at start")
         tel = result.telemetry
         print(f"  telemetry: {tel.get('written', 0)} records, {tel.get('dropped', 0)} dropped, "
               f"{tel.get('path', '')}")
