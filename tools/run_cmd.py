@@ -90,6 +90,7 @@ def run(args: argparse.Namespace) -> int:
     # Telemetry starts before the loop asks for SCHED_FIFO (the writer thread must not inherit
     # it); the loop then takes its real-time set-up and only after it opens the HAL, so that no
     # sample queues up while memory is locked and the collector runs.
+    created = [d for d in (path.parent, *path.parent.parents) if not d.exists()]   # deepest first
     telemetry = TelemetryWriter.for_controller(
         path, controller, meta={"config": cfg.source, "gain_table": str(cfg.table_path),
                                 "model_sha256": table.model_sha256, "backend": cfg.hal.backend}).start()
@@ -108,6 +109,11 @@ def run(args: argparse.Namespace) -> int:
     except (realtime.RealtimeError, HalError) as exc:
         if telemetry.written == 0:      # refused before the first sample: no recording to keep
             path.unlink(missing_ok=True)
+            for directory in created:
+                try:
+                    directory.rmdir()
+                except OSError:
+                    break
         print(f"beamctl run: error: {exc}", file=sys.stderr)
         return 2
     finally:
