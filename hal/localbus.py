@@ -38,7 +38,6 @@ Usage, in any process once beamctl is installed (python-can finds the interface 
 from __future__ import annotations
 
 import errno
-import math
 import mmap
 import os
 import select
@@ -171,6 +170,7 @@ class LocalBus(can.BusABC):
             self._rx = bytearray(FRAME.size + 1)     # one byte more: a longer datagram shows as too long
             self._poll = select.poll()
             self._poll.register(sock, select.POLLIN)
+            self._readers = (sock,)
             self.channel_info = f"beamctl local bus {self.channel} ({os.fsdecode(path)})"
             self._can_protocol = can.CanProtocol.CAN_FD
             super().__init__(channel=self.channel, receive_own_messages=receive_own_messages, **kwargs)
@@ -249,7 +249,9 @@ class LocalBus(can.BusABC):
                 remaining_s = deadline - time.monotonic()
                 if remaining_s <= 0:
                     return None, False
-                self._poll.poll(math.ceil(remaining_s * 1000))
+                # select, not poll: poll waits whole milliseconds, and a time-out of a fraction of
+                # a sample period must not become a millisecond
+                select.select(self._readers, (), (), remaining_s)
                 continue
             except OSError as exc:
                 raise can.CanOperationError(f"{self.channel_info}: receive failed: {exc.strerror or exc}",

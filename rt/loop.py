@@ -223,9 +223,13 @@ class ControlLoop:
                 timing.cycle.record(t0 - previous_start)   # start to start
             previous_start = t0
             timeout = read_timeout
-            if not timer and c.state == State.RUNNING:
-                # wait no longer than the stale-input deadline (and a little, to see it pass)
-                timeout = min(read_timeout, max(self._last_sample + stale_s - t0, 0.1 * period))
+            if not timer:
+                state = c.state
+                if state == State.RUNNING:
+                    # wait no longer than the stale-input deadline (and a little, to see it pass)
+                    timeout = min(read_timeout, max(self._last_sample + stale_s - t0, 0.1 * period))
+                elif state in (State.FAULT, State.STOPPING) and not c.at_bias:
+                    timeout = period    # a ramp without samples still takes its time, not 1.5x
             try:
                 sample = hal.read(timeout=timeout)
             except HalStaleData:
