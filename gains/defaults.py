@@ -67,7 +67,7 @@ PAPER_TABLE = "paper.yaml"
 #   (0.994), a 1.3 kHz filter with 300-320 N a stiff one (0.995).
 # The shipped default: the delay-aware LQG (gains.lqg) with the best worst case over the
 # uncertainty box of the robust check (README, "Robustness"). 6000 Hz needs CAN FD (classic
-# CAN carries at most 2833 Hz of these frames); the design assumes the voltages reach the stacks
+# CAN carries at most 2819 Hz of these frames); the design assumes the voltages reach the stacks
 # half a sample after the sampling instant (the middle of the box's 0..1 sample) and a
 # second-order Butterworth anti-aliasing filter at 1.25 kHz on the four strain channels, which
 # the rig must have: it keeps mode 7 (5.1 kHz) from folding into the control band. Seven modes
