@@ -15,7 +15,7 @@ from beamctl.gains.defaults import paper_table_path
 from beamctl.gains.table import load_table
 from beamctl.hal.base import HalConnectionLost
 from beamctl.rt.config import controller_config
-from beamctl.rt.controller import COL, RECORD_COLUMNS, Controller
+from beamctl.rt.controller import COL, FLAG_NO_NEW_SAMPLE, RECORD_COLUMNS, Controller
 from beamctl.rt.loop import ControlLoop
 from beamctl.rt.safety import Fault, State
 from beamctl.rt.telemetry import TelemetryWriter, read_telemetry
@@ -339,12 +339,14 @@ def test_the_stale_input_fault_comes_after_stale_periods_of_time_not_of_read_tim
     clock = FakeClock(tick=0.0)
     config = controller_config({"start_ramp_time_s": 0.0, "safety": {"ramp_time_s": RAMP_TIME}})
     controller = Controller(table, config)
-    hal = ScriptedHal(2500.0, [DEFLECTED] * 200 + [None] * 40, sleep=clock.sleep)
-    silent_at_fault = []
+    hal = ScriptedHal(2500.0, [DEFLECTED] * 200 + [None] * 40, sleep=clock.sleep).open()
+    silent_at_fault, last_sample = [], [clock()]
 
     def watch(loop):
-        if controller.supervisor.fault != Fault.NONE and not silent_at_fault:
-            silent_at_fault.append((clock() - loop._last_sample) * 2500.0)
+        if not int(controller.record[COL["flags"]]) & FLAG_NO_NEW_SAMPLE:
+            last_sample[0] = clock()
+        elif controller.supervisor.fault != Fault.NONE and not silent_at_fault:
+            silent_at_fault.append((clock() - last_sample[0]) * 2500.0)
 
     loop = ControlLoop(controller, hal, clock=clock, on_cycle=watch)
     result = _run(loop)
