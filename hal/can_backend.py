@@ -194,18 +194,11 @@ class CanBackend(HalBase):
         return False
 
     def _valid(self, codec, msg: can.Message, values: list) -> bool:
-        counters = self.counters
-        data = msg.data
-        if msg.dlc != codec.length or len(data) != codec.length:
-            counters["wrong_length"] += 1
-            return False
-        if not codec.crc_ok(data):
-            counters["crc_errors"] += 1
-            return False
-        if not codec.decode_into(data, values):
-            counters["out_of_range"] += 1
-            return False
-        return True
+        fault = codec.reject(msg, values)
+        if fault is None:
+            return True
+        self.counters[fault] += 1
+        return False
 
     def _take_strains(self, msg: can.Message, sample: Sample) -> bool:
         c = self.contract

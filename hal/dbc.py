@@ -109,6 +109,23 @@ class FrameCodec:
             out[i] = value
         return ok
 
+    def reject(self, msg, out: list) -> str | None:
+        """Validate a received frame of this message and decode it into ``out``: None when it
+        is good, else the kind of fault, the name of its counter: ``extended_ids``,
+        ``remote_frames``, ``wrong_length``, ``crc_errors``, ``out_of_range``."""
+        if msg.is_extended_id:
+            return "extended_ids"
+        if msg.is_remote_frame:
+            return "remote_frames"
+        data = msg.data
+        if msg.dlc != self.length or len(data) != self.length:
+            return "wrong_length"
+        if not self.crc_ok(data):
+            return "crc_errors"
+        if not self.decode_into(data, out):
+            return "out_of_range"
+        return None
+
     def crc_ok(self, data: bytes | bytearray) -> bool:
         """The frame's CRC byte is right (always True for a message without one)."""
         if self.crc_byte is None:

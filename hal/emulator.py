@@ -123,23 +123,12 @@ class CanPlantEmulator:
         frame_id = msg.arbitration_id
         if frame_id not in (c.voltages.frame_id, c.status.frame_id):
             return None
-        rejected = self.rejected
-        if msg.is_extended_id:
-            rejected["extended_ids"] += 1
-            return None
-        if msg.is_remote_frame:
-            rejected["remote_frames"] += 1
-            return None
         codec = c.voltages if frame_id == c.voltages.frame_id else c.status
         values = self._decoded if codec is c.voltages else self._status_values
-        if msg.dlc != codec.length or len(msg.data) != codec.length:
-            rejected["wrong_length"] += 1
-            return None
-        if not codec.crc_ok(msg.data):
-            rejected["crc_errors"] += 1
-            return None
-        if not codec.decode_into(msg.data, values):
-            rejected["out_of_range"] += 1
+        rejected = self.rejected
+        fault = codec.reject(msg, values)
+        if fault is not None:
+            rejected[fault] += 1
             return None
         if codec is c.status:
             self.status_frames += 1
