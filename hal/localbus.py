@@ -106,7 +106,10 @@ def private_directory(path: str, what: str) -> None:
 
 
 def check_channel_name(channel: Any) -> str:
-    """A channel is one directory name: no path, so it cannot leave the base directory."""
+    """A channel is one directory name: no path, so it cannot leave the base directory. A name of
+    digits alone arrives as an int (python-can casts channel strings that look like numbers)."""
+    if isinstance(channel, int) and not isinstance(channel, bool) and channel >= 0:
+        channel = str(channel)
     if (not isinstance(channel, str) or channel in ("", ".", "..") or "/" in channel
             or "\0" in channel):
         raise can.CanInitializationError(

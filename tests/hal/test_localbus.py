@@ -271,3 +271,18 @@ def test_a_base_directory_of_another_user_is_refused(base_dir, channel):
 def test_python_can_opens_it_by_name(channel):
     with can.Bus(interface="beamctl_local", channel=channel) as bus:
         assert isinstance(bus, LocalBus), type(bus)
+
+
+def test_a_channel_named_by_digits_alone_works_through_python_can(base_dir):
+    """python-can turns a channel string of digits into an int before the bus sees it
+    (``beamctl_local:42`` on a command line): it is still that channel."""
+    sender = can.Bus(interface="beamctl_local", channel="12345678")
+    receiver = can.Bus(interface="beamctl_local", channel="12345678")
+    try:
+        sender.send(can.Message(arbitration_id=0x123, data=b"\x01", is_extended_id=False))
+        msg = receiver.recv(5.0)
+        assert msg is not None and msg.arbitration_id == 0x123
+        assert (base_dir / "12345678").is_dir()
+    finally:
+        sender.shutdown()
+        receiver.shutdown()
