@@ -132,8 +132,9 @@ class HalBase(abc.ABC):
         self.writes += 1
 
     def discard_backlog(self) -> int:
-        """Drop every sample already queued (taken before the controller was ready to answer
-        them); return how many. Called once before the first read."""
+        """Drop the samples already queued before the controller was ready to answer them, all
+        but the newest, which the next read returns; return how many were dropped. Called once
+        before the first read."""
         if not self.is_open:
             raise HalConnectionLost(f"{self.name}: discard on a closed backend")
         return self._discard_backlog()

@@ -100,6 +100,7 @@ class CanBackend(HalBase):
         self._arrival = 0.0         # its arrival on the bus (time.time() clock)
         self._pending = False       # delivered by read() and not yet answered
         self._discarding = False
+        self._held = False
         self._voltage_frames = 0
         self._window_count = 0
         self._window_start = None
@@ -133,6 +134,11 @@ class CanBackend(HalBase):
 
     # -- receive ---------------------------------------------------------------------------------------
     def _read(self, sample: Sample, timeout: float | None) -> bool:
+        if self._held:          # the newest sample found at start (``_discard_backlog``)
+            self._held = False
+            if sample is not self._sample:
+                raise HalProtocolError("can: a held sample read into another buffer")
+            return True
         deadline = time.monotonic() + (timeout if timeout is not None else 1.0)
         while True:
             remaining = deadline - time.monotonic()
@@ -146,10 +152,11 @@ class CanBackend(HalBase):
                 return True
 
     def _discard_backlog(self) -> int:
-        """Take every frame already queued without delivering a sample (the load value and the
-        counters follow them); return the number of samples discarded."""
+        """Take every frame already queued (the load value and the counters follow them); keep
+        the newest complete sample for the next read, the one the DAQ waits to have answered,
+        and drop the older ones unanswered. Return the number dropped."""
         self._discarding = True
-        discarded = 0
+        complete = 0
         try:
             while True:
                 try:
@@ -159,11 +166,12 @@ class CanBackend(HalBase):
                 if msg is None:
                     break
                 if self._take(msg, self._sample):
-                    discarded += 1
+                    complete += 1
         finally:
             self._discarding = False
+        self._held = complete > 0
+        discarded = max(complete - 1, 0)
         self.counters["backlog_discarded"] += discarded
-        self._pending = False
         return discarded
 
     def _take(self, msg: can.Message, sample: Sample) -> bool:

@@ -16,7 +16,7 @@ against the latency budget (rt/safety.py) and recorded with the sample.
 
 Start-up order: real-time set-up (SCHED_FIFO, memory lock, the garbage collector collected and
 frozen) first, then the HAL is opened (if the caller has not), then whatever the HAL queued
-before the controller was ready is discarded and counted, and the first fresh sample arms.
+before the controller was ready is discarded and counted, all but the newest sample, which arms.
 At the end the final state is announced to the hardware (the DAQ sees STOPPED or FAULT).
 
 SIGINT and SIGTERM ask for a stop: the voltages ramp to bias, telemetry is flushed, and

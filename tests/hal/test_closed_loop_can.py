@@ -180,3 +180,19 @@ def test_samples_queued_before_the_first_read_are_discarded_and_counted(tmp_path
     ages_ms = records[:, COL["answer_age_us"]] / 1e3
     assert np.nanmax(ages_ms[:20]) < 30.0, (
         f"the first answers came {np.nanmax(ages_ms[:20]):.1f} ms after their samples: a backlog answered")
+
+
+def test_a_daq_waiting_for_its_first_answer_gets_it_though_the_backlog_is_discarded():
+    """A lockstep DAQ sends one sample and waits for its answer: that sample, queued before the
+    loop starts, is the newest of the backlog and is answered, not dropped (dropping it would
+    leave both sides waiting until a time-out)."""
+    rig = CanRig(load={"start": 1000.0, "end": 1000.0}, answer_timeout_s=5.0)
+    controller = Controller(TABLE, controller_config({"pacing": "sample", "safety": IN_PROCESS_SAFETY}))
+    rig.hal.open()
+    try:
+        time.sleep(0.2)                         # sample 0 is queued, the emulator waits for its answer
+        result = ControlLoop(controller, rig.hal, max_cycles=50).run(acquire_rt=False)
+    finally:
+        rig.close()
+    assert result.state == "STOPPED", result.reason
+    assert result.backlog_discarded == 0 and rig.emulator.missed_answers == 0
