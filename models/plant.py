@@ -434,3 +434,26 @@ class Plant:
     def displacement(self) -> np.ndarray:
         """Elastic FE displacement vector r (4N) of the current state."""
         return self.basis @ self._state[self._q]
+
+    # -- frequency response of the sampled plant -------------------------------------------------
+    def frequency_response(self, axial_load: float, freqs_hz) -> np.ndarray:
+        """The sampled plant's response from the four commanded forces to the four measured
+        strains at ``axial_load``, [nf x 4 x 4] complex (strain per N), at each frequency below
+        the Nyquist frequency: G(z) = C (zI - Ad)^-1 (B_now + B_before z^-1) z^-whole with
+        z = exp(j 2 pi f T), i.e. exactly the discretisation ``step`` runs (zero-order hold, the
+        I/O chain's delay and filters). A sample's strains answer the forces commanded at the
+        samples before it, as a recorded run pairs them."""
+        freqs = np.asarray(freqs_hz, dtype=float)
+        zoh = self.discretise(axial_load)
+        a, _, c, _ = self.augmented(axial_load)
+        z = np.exp(2j * np.pi * freqs * self.sample_period)
+        n = zoh.ad.shape[0]
+        out = np.empty((len(freqs), N_STRAINS, N_FORCES), dtype=complex)
+        chunk = 256
+        eye = np.eye(n)
+        for lo in range(0, len(z), chunk):
+            zs = z[lo:lo + chunk]
+            b = zoh.b_now[None] + zoh.b_before[None] / zs[:, None, None]
+            x = np.linalg.solve(zs[:, None, None] * eye[None] - zoh.ad[None], b)
+            out[lo:lo + chunk] = (c @ x) * zs[:, None, None] ** (-zoh.whole)
+        return out
