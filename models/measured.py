@@ -69,3 +69,37 @@ class FrfData:
 def nan_matrix(nf: int) -> tuple[np.ndarray, np.ndarray]:
     """An all-unmeasured (frf, coherence) pair of ``nf`` frequencies."""
     return (np.full((nf, 4, 4), complex(math.nan, math.nan)), np.full((nf, 4, 4), math.nan))
+
+
+def resonances(data: FrfData, count: int = 3, min_coherence: float = 0.5) -> dict[str, list[float]]:
+    """The ``count`` most prominent resonance frequencies (Hz, ascending) of each bending plane:
+    peaks of the plane's measured responses (each normalised to its largest magnitude, summed
+    over the plane's entries, points below ``min_coherence`` left out), refined by a parabola
+    through the peak's neighbours on the log magnitude."""
+    from scipy.signal import find_peaks
+
+    f = data.frequencies_hz
+    out: dict[str, list[float]] = {}
+    for plane, pairs in PLANE_PAIRS.items():
+        total = np.zeros(len(f))
+        for i, j in pairs:
+            h = np.abs(data.frf[:, i, j])
+            if not np.all(np.isfinite(h)) or not h.max() > 0:
+                continue
+            good = np.nan_to_num(data.coherence[:, i, j], nan=0.0) >= min_coherence
+            total += np.where(good, h / h.max(), 0.0)
+        if not total.max() > 0:
+            out[plane] = []
+            continue
+        peaks, props = find_peaks(total, prominence=0.05 * total.max())
+        best = peaks[np.argsort(props["prominences"])[::-1][:count]]
+        found = []
+        for k in sorted(best):
+            if 0 < k < len(f) - 1 and np.all(total[k - 1:k + 2] > 0):
+                a, b, c = np.log(total[k - 1:k + 2])
+                shift = 0.5 * (a - c) / (a - 2 * b + c) if a - 2 * b + c != 0 else 0.0
+                found.append(float(f[k] + shift * (f[k + 1] - f[k - 1]) / 2))
+            else:
+                found.append(float(f[k]))
+        out[plane] = found
+    return out

@@ -93,6 +93,8 @@ _SCHEMA = {
 }
 
 _CACHE_SIZE = 8
+# eigenvectors of the discretised plant better conditioned than this diagonalise its frequency response
+_MAX_EIGENVECTOR_CONDITION = 1e10
 N_FORCES = 4        # actuator forces (Fay,A, Faz,A, Fay,B, Faz,B); the fifth input is Fx
 N_STRAINS = 4
 
@@ -445,15 +447,18 @@ class Plant:
         samples before it, as a recorded run pairs them."""
         freqs = np.asarray(freqs_hz, dtype=float)
         zoh = self.discretise(axial_load)
-        a, _, c, _ = self.augmented(axial_load)
+        _, _, c, _ = self.augmented(axial_load)
         z = np.exp(2j * np.pi * freqs * self.sample_period)
-        n = zoh.ad.shape[0]
-        out = np.empty((len(freqs), N_STRAINS, N_FORCES), dtype=complex)
-        chunk = 256
-        eye = np.eye(n)
-        for lo in range(0, len(z), chunk):
-            zs = z[lo:lo + chunk]
-            b = zoh.b_now[None] + zoh.b_before[None] / zs[:, None, None]
-            x = np.linalg.solve(zs[:, None, None] * eye[None] - zoh.ad[None], b)
-            out[lo:lo + chunk] = (c @ x) * zs[:, None, None] ** (-zoh.whole)
-        return out
+        shift = z[:, None, None] ** (-zoh.whole)
+        lam, vec = np.linalg.eig(zoh.ad)
+        if np.linalg.cond(vec) < _MAX_EIGENVECTOR_CONDITION:
+            # diagonalised once: each frequency costs a scaling of C V and V^-1 B
+            left = c @ vec
+            now, before = np.linalg.solve(vec, zoh.b_now), np.linalg.solve(vec, zoh.b_before)
+            resolvent = 1.0 / (z[:, None] - lam[None, :])
+            g = (np.einsum("in,fn,nj->fij", left, resolvent, now)
+                 + np.einsum("in,fn,nj->fij", left, resolvent, before) / z[:, None, None])
+            return g * shift
+        eye = np.eye(zoh.ad.shape[0])          # near-defective: one solve per frequency
+        b = zoh.b_now[None] + zoh.b_before[None] / z[:, None, None]
+        return (c @ np.linalg.solve(z[:, None, None] * eye[None] - zoh.ad[None], b)) * shift

@@ -83,7 +83,11 @@ class Controller:
     until the stale-input fault), ``fault(...)``, ``request_stop()``, ``rearm()``.
     """
 
-    def __init__(self, table: GainTable, config: ControllerConfig) -> None:
+    def __init__(self, table: GainTable, config: ControllerConfig, *, excitation: np.ndarray | None = None,
+                 law: bool = True) -> None:
+        """``excitation`` [n x 6], volts added to the law's voltages at the first n control steps
+        after a start (identification: then bias, or the law alone), clamped to the voltage
+        limits; ``law`` False leaves the stacks at bias plus the excitation (open loop)."""
         self.table = table
         self.config = config
         self.sample_rate_hz = table.design.sample_rate_hz
@@ -115,6 +119,12 @@ class Controller:
         self._dv = np.zeros(6)
         self._target = np.zeros(6)                            # voltages from the allocation
         self._bias = np.full(6, config.actuators.bias_voltage)
+        self._law = law
+        self._excitation = None if excitation is None else np.ascontiguousarray(excitation, dtype=float)
+        if self._excitation is not None and (self._excitation.ndim != 2 or self._excitation.shape[1] != 6):
+            raise ValueError(f"excitation must be [n x 6] volts, got shape {self._excitation.shape}")
+        self.excitation_index = 0       # excitation rows applied since the start
+        self._v_min, self._v_max = config.actuators.min_voltage_v, config.actuators.max_voltage_v
 
         beam = table.model_parameters.beam
         self.safety = Safety(config.safety, beam.proportional_limit / beam.youngs_modulus,
@@ -162,6 +172,7 @@ class Controller:
         from bias. A start on a non-finite strain faults at once."""
         self.supervisor.start()
         self._steps_since_start = 0
+        self.excitation_index = 0
         self.xi[:] = 0.0
         if not np.all(np.isfinite(self.strains)):
             self.q[:] = 0.0
@@ -215,6 +226,42 @@ class Controller:
         return self.voltages
 
     def _control(self) -> None:
+        if self._law:
+            if not self._law_step():
+                return
+        else:
+            np.dot(self._c0_phi_inv, self.strains, out=self.q)
+            self._target[:] = self._bias
+        if self._excitation is not None:
+            self._excite()
+        # the bumpless start: voltages faded in from bias
+        r = self.record
+        self._steps_since_start += 1
+        if self._steps_since_start < self._start_samples:
+            r[I_FLAGS] += FLAG_FADING_IN
+            fade = self._steps_since_start / self._start_samples
+            np.subtract(self._target, self._bias, out=self.voltages)
+            self.voltages *= fade
+            self.voltages += self._bias
+        else:
+            self.voltages[:] = self._target
+        # 5. the forces these voltages produce, and the compensator's next state
+        self._take_applied_forces()
+        if self._law:
+            self.schedule.update(self._signals, self.compensator_state)
+            alloc = self.allocator
+            self.safety.saturation(alloc.scale_a < 1.0 or alloc.scale_b < 1.0)
+
+    def _excite(self) -> None:
+        """The next excitation row onto the target voltages, within the voltage limits."""
+        k = self.excitation_index
+        if k < len(self._excitation):
+            self._target += self._excitation[k]
+            np.clip(self._target, self._v_min, self._v_max, out=self._target)
+            self.excitation_index = k + 1
+
+    def _law_step(self) -> bool:
+        """Steps 1-4 into the target voltages; False when the load left the table (a fault)."""
         r = self.record
         schedule = self.schedule
         schedule.follow(r[I_LOAD])
@@ -226,7 +273,7 @@ class Controller:
                        f"[{self.table.loads_n[0]:g}, {self.table.loads_n[-1]:g}] N")
             self._ramp()
             self._take_applied_forces()
-            return
+            return False
         # 1. q = (C0 Phi)^-1 y (eq. 30), for telemetry
         np.dot(self._c0_phi_inv, self.strains, out=self.q)
         # 2. integral action with anti-windup
@@ -245,7 +292,7 @@ class Controller:
             self.xi += self._dxi
         # 3. u = -(C x_c + D y) - Ki xi at the filtered load
         schedule.output(self._signals, self.u)
-        # 4. allocation, and the bumpless start: voltages faded in from bias
+        # 4. allocation
         alloc.allocate(self.u, self._target)
         r[I_SCALE_A] = alloc.scale_a
         r[I_SCALE_B] = alloc.scale_b
@@ -253,19 +300,7 @@ class Controller:
             r[I_FLAGS] += FLAG_SATURATED_A
         if alloc.scale_b < 1.0:
             r[I_FLAGS] += FLAG_SATURATED_B
-        self._steps_since_start += 1
-        if self._steps_since_start < self._start_samples:
-            r[I_FLAGS] += FLAG_FADING_IN
-            fade = self._steps_since_start / self._start_samples
-            np.subtract(self._target, self._bias, out=self.voltages)
-            self.voltages *= fade
-            self.voltages += self._bias
-        else:
-            self.voltages[:] = self._target
-        # 5. the forces these voltages produce, and the compensator's next state
-        self._take_applied_forces()
-        schedule.update(self._signals, self.compensator_state)
-        self.safety.saturation(alloc.scale_a < 1.0 or alloc.scale_b < 1.0)
+        return True
 
     def _take_applied_forces(self) -> None:
         """u_applied = M (V - V_bias): the lateral forces the voltages about to be written give,

@@ -46,7 +46,16 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     from beamctl.gains.build import tool_version
-    from beamctl.tools import bench_cmd, experiment_cmd, gains_cmd, log_cmd, model_cmd, plant_cmd, run_cmd
+    from beamctl.tools import (
+        bench_cmd,
+        experiment_cmd,
+        gains_cmd,
+        identify_cmd,
+        log_cmd,
+        model_cmd,
+        plant_cmd,
+        run_cmd,
+    )
 
     parser = _Parser(
         prog="beamctl",
@@ -55,6 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     experiment_cmd.add_parser(sub)
     model_cmd.add_parser(sub)
+    identify_cmd.add_parser(sub)
     gains_cmd.add_parser(sub)
     log_cmd.add_parser(sub)
     plant_cmd.add_parser(sub)

@@ -13,9 +13,10 @@ from beamctl.config.schema import ConfigError
 from beamctl.gains.build import build_lqg_table, build_table, closed_loop_checks
 from beamctl.gains.defaults import DESIGNS, default_table_path, paper_table_path
 from beamctl.gains.table import GainTable, changed_file_message, load_table, write_table
-from beamctl.models import build_model, load_parameters
+from beamctl.models import build_model
 from beamctl.tools.outputs import check_dir, check_file, replacing
 from beamctl.tools.progress import ProgressBar
+from beamctl.tools.service import load_model_file
 
 
 def parse_grid(text: str) -> np.ndarray:
@@ -39,7 +40,9 @@ def add_parser(sub) -> None:
 
     b = gsub.add_parser("build", help="design the controller over a load grid, check the closed loop "
                         "on the nominal model and over the uncertainty box")
-    b.add_argument("--config", metavar="F", help="model parameters (YAML) over the paper's Table 1")
+    b.add_argument("--config", metavar="F",
+                   help="model parameters (YAML) over the paper's Table 1, or a configuration "
+                   "with a model: section (a rig's service config, the output of `beamctl model fit`)")
     b.add_argument("--design", choices=DESIGNS, default="lqg",
                    help="lqg: the delay-aware LQG at 6000 Hz (the shipped default); integral-lqr: the "
                         "paper's design at 2500 Hz")
@@ -88,7 +91,7 @@ def _load(file: str | None, action: str) -> GainTable:
 
 def run_build(args: argparse.Namespace) -> int:
     grid = parse_grid(args.grid) if args.grid else None
-    params = load_parameters(args.config)
+    params = load_model_file(args.config)
     out = check_file(args.out, "--out")
     model = build_model(params)
     if args.design == "lqg" and args.mode != "interpolate":

@@ -1,4 +1,5 @@
-"""``beamctl model``: critical load, eigenfrequencies versus load, figures 5b and 6."""
+"""``beamctl model``: critical load, eigenfrequencies versus load, figures 5a, 5b and 6;
+``beamctl model fit``: fit model parameters to measured frequency responses."""
 
 from __future__ import annotations
 
@@ -7,10 +8,12 @@ import json
 
 import numpy as np
 
-from beamctl.models import build_model, critical_load, eigenfrequencies, load_parameters, reduce
+from beamctl.models import build_model, critical_load, eigenfrequencies, reduce
 from beamctl.models.fe import FEModel
 from beamctl.models.modal import ModalModel
+from beamctl.tools import fit_cmd
 from beamctl.tools.outputs import check_dir
+from beamctl.tools.service import load_model_file
 
 TABLE_LOADS_N = (0, 500, 1000, 1500, 2000, 2500, 3000)
 FIGURE6_LOAD_N = 2000.0
@@ -20,10 +23,20 @@ def add_parser(sub) -> None:
     p = sub.add_parser("model", help="FE model: critical load, eigenfrequencies, figures 5b and 6",
                        description="Build the FE model of the beam-column and report its "
                                    "critical buckling load and eigenfrequencies versus load.")
-    p.add_argument("--config", metavar="F", help="model parameters (YAML) over the paper's Table 1")
+    p.add_argument("--config", metavar="F",
+                   help="model parameters (YAML) over the paper's Table 1, or a configuration "
+                   "with a model: section (a rig's service config, the output of `beamctl model fit`)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of tables")
-    p.add_argument("--plot", metavar="DIR", help="write figure 5b and figure 6 as PNG into DIR")
-    p.set_defaults(run=run)
+    p.add_argument("--plot", metavar="DIR", help="write figure 5b and figure 6 as PNG into DIR; with --frf "
+                   "also figure 5a, and the measured resonances on figure 5b")
+    p.add_argument("--frf", metavar="FILE", nargs="+",
+                   help="measured frequency responses (.npz, .mat, .csv): figure 5a against the model; "
+                        "several files at different loads put their resonances on figure 5b")
+    p.add_argument("--fitted", metavar="MODEL",
+                   help="with --frf: the fitted model (`beamctl model fit --out`), drawn after the fit "
+                        "against --config's model before it")
+    p.set_defaults(run=run, model_command=None)
+    fit_cmd.add_parser(p.add_subparsers(dest="model_command", metavar="ACTION"))
 
 
 def summary(model: FEModel, reduced: ModalModel) -> dict:
@@ -71,8 +84,20 @@ def print_table(s: dict, source: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    params = load_parameters(args.config)
+    from beamctl.config.schema import ConfigError
+
+    if (args.frf or args.fitted) and not args.plot:
+        raise ConfigError("--plot", None, "a folder for the figures: --frf and --fitted draw figure 5a")
+    if args.fitted and not args.frf:
+        raise ConfigError("--frf", None, "the measurement the fitted model is drawn against (--fitted)")
+    params = load_model_file(args.config)
     plot_dir = check_dir(args.plot, "--plot") if args.plot else None
+    measured = []
+    if args.frf:
+        from beamctl.tools.frf_files import read_frf
+
+        measured = [read_frf(f) for f in args.frf]
+    fitted = fit_cmd.load_fitted(args.fitted) if args.fitted else None
     model = build_model(params)
     reduced = reduce(model)
     s = summary(model, reduced)
@@ -84,11 +109,14 @@ def run(args: argparse.Namespace) -> int:
         from beamctl.tools import plots
 
         written = [
-            plots.eigenfrequencies_vs_load(model, reduced, plot_dir / "fig5b_eigenfrequencies.png"),
+            plots.eigenfrequencies_vs_load(model, reduced, plot_dir / "fig5b_eigenfrequencies.png",
+                                           measured=measured),
             plots.frequency_response_full_vs_reduced(
                 model, reduced, FIGURE6_LOAD_N, np.linspace(0.0, 1200.0, 2401),
                 plot_dir / "fig6_frequency_response.png"),
         ]
+        if measured:
+            written.append(fit_cmd.figure_5a(measured, params, fitted, plot_dir / fit_cmd.FIG5A))
         if not args.json:
             print()
             for path in written:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -9,6 +10,7 @@ import numpy as np
 from beamctl.config.schema import ConfigError
 from beamctl.models import critical_load, eigenfrequencies, fe_frequency_response
 from beamctl.models.fe import FEModel
+from beamctl.models.measured import FrfData, resonances
 from beamctl.models.modal import ModalModel
 from beamctl.tools.outputs import replacing
 
@@ -49,8 +51,10 @@ def _save(fig, path: Path) -> Path:
     return Path(path)
 
 
-def eigenfrequencies_vs_load(model: FEModel, reduced: ModalModel, path: Path) -> Path:
-    """Figure 5b: the first three eigenfrequencies versus axial load up to the critical load."""
+def eigenfrequencies_vs_load(model: FEModel, reduced: ModalModel, path: Path,
+                             measured: Sequence[FrfData] = ()) -> Path:
+    """Figure 5b: the first three eigenfrequencies versus axial load up to the critical load; the
+    resonances of ``measured`` frequency responses as points (y: triangles, z: circles)."""
     plt = _pyplot()
     fcr = critical_load(model)
     loads = np.linspace(0.0, fcr, 200)
@@ -62,6 +66,11 @@ def eigenfrequencies_vs_load(model: FEModel, reduced: ModalModel, path: Path) ->
     for i in range(2):
         ax.plot(loads, red[:, i], "--", color="tab:red",
                 label=f"reduced model (modes at {reduced.reference_load:.0f} N)" if i == 0 else None)
+    for plane, marker in (("y", "v"), ("z", "o")):
+        points = [(d.load_n, f) for d in measured for f in resonances(d)[plane]]
+        if points:
+            x, y = zip(*points, strict=True)
+            ax.plot(x, y, marker, mfc="none", color="tab:blue", label=f"measured, {plane} direction")
     ax.axvline(fcr, color="0.5", lw=0.8)
     ax.text(fcr, ax.get_ylim()[1] * 0.95, f" Fx,cr = {fcr:.0f} N", ha="right", va="top")
     return _finish(fig, ax, path, xlabel="axial load Fx in N", ylabel="eigenfrequency f in Hz",
@@ -89,6 +98,36 @@ def frequency_response_full_vs_reduced(model: FEModel, reduced: ModalModel, axia
     ax_p.set_xlabel("frequency f in Hz")
     ax_p.set_yticks([-180, -90, 0, 90, 180])
     ax_m.set_title(f"Frequency responses at Fx = {axial_load:g} N (figure 6)")
+    for ax in (ax_m, ax_p):
+        ax.grid(True, alpha=0.3)
+    ax_m.legend(loc="lower left", fontsize=8)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def frequency_response_measured(d: FrfData, models: Sequence[tuple[str, np.ndarray]], path: Path) -> Path:
+    """Figure 5a: amplitude and phase of Gy = eps_y1 / Fay,A and Gz = eps_z1 / Faz,A measured
+    (y dashed, z dotted) against each model's (label, [nf x 4 x 4] response) at the measurement's
+    frequencies."""
+    plt = _pyplot()
+    f = d.frequencies_hz
+    fig, (ax_m, ax_p) = plt.subplots(2, 1, sharex=True, figsize=(7, 6))
+
+    def draw(g, style, color, label, width=1.2):
+        ax_m.semilogy(f, np.abs(g), style, color=color, label=label, lw=width)
+        ax_p.plot(f, np.degrees(np.angle(g)), style, color=color, lw=width)
+
+    colors = ("0.55", "k", "tab:red")
+    for (label, g), color in zip(models, colors, strict=False):
+        draw(g[:, 0, 0], "-", color, f"{label}, Gy (= Gz)", 1.6 if color == "k" else 1.0)
+    for (i, j), style, name in (((0, 0), "--", "Gy"), ((1, 1), ":", "Gz")):
+        if np.all(np.isfinite(d.frf[:, i, j])):
+            draw(d.frf[:, i, j], style, "tab:blue", f"measured, {name}")
+    ax_m.set_ylabel("|Gy/z| in 1/N (strain per N)")
+    ax_p.set_ylabel("arg Gy/z in deg")
+    ax_p.set_xlabel("frequency f in Hz")
+    ax_p.set_yticks([-180, -90, 0, 90, 180])
+    ax_m.set_title(f"Frequency responses at Fx = {d.load_n:.0f} N, model and measurement (figure 5a)")
     for ax in (ax_m, ax_p):
         ax.grid(True, alpha=0.3)
     ax_m.legend(loc="lower left", fontsize=8)

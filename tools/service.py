@@ -3,7 +3,9 @@ the builders that turn it into a model, gain table, controller, plant and HAL.
 
 One YAML file, every section optional, every key checked::
 
-    model:      partial model parameters (the model the gains are designed for)
+    model:      partial model parameters (the model the gains are designed for), or the path of
+                a model file (model parameters, or a file with a model: section such as the
+                output of `beamctl model fit`)
     gains:      {table: path}            (default: the shipped gains/default.yaml)
     controller: rt settings               (rt/config.py)
     hal:        backend and its settings  (hal/config.py)
@@ -60,7 +62,10 @@ def service_config(data: dict | None = None, source: str = "") -> ServiceConfig:
     unknown = sorted(set(data) - set(SECTIONS))
     if unknown:
         raise ConfigError(unknown[0], data[unknown[0]], f"one of the sections {list(SECTIONS)}", source)
-    model_overrides = _section(data, "model", source)
+    if isinstance(data.get("model"), str):
+        model_overrides = model_file_overrides(data["model"], f"{source}: model" if source else "model")
+    else:
+        model_overrides = _section(data, "model", source)
     try:
         params = parameters_from_dict(model_overrides, source)
     except ConfigError as exc:
@@ -84,6 +89,32 @@ def service_config(data: dict | None = None, source: str = "") -> ServiceConfig:
     return ServiceConfig(
         source=source, model=params, table_path=table, controller=controller, hal=hal, plant=plant,
         plant_model=plant_model, telemetry=run["telemetry"], duration_s=run["duration_s"])
+
+
+def model_file_overrides(path: str | Path, what: str = "--config") -> dict:
+    """The model parameters a file gives: a model parameter file (keys beam, supports, ...), or
+    a configuration with a ``model:`` mapping (a rig's service config, the output of `beamctl
+    model fit`), whose other sections are checked as a service config's."""
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(what, str(path), "an existing model or service configuration file")
+    data = read_yaml(p)
+    if isinstance(data, dict) and set(data) & set(SECTIONS):
+        section = data.get("model")
+        if not isinstance(section, dict):
+            raise ConfigError("model", section, "a mapping of model parameters (this file has service "
+                              "sections but no model section to take the model from)", str(p))
+        service_config({k: v for k, v in data.items() if k != "model"}, str(p))
+        return section
+    return data or {}
+
+
+def load_model_file(path: str | Path | None) -> ModelParameters:
+    """Model parameters over the paper's Table 1 from either kind of file (``model_file_overrides``);
+    None: the paper's defaults."""
+    if path is None:
+        return parameters_from_dict({}, "paper defaults")
+    return parameters_from_dict(model_file_overrides(path), str(path))
 
 
 def load_service_config(path: str | Path | None) -> ServiceConfig:

@@ -1,0 +1,338 @@
+"""Fitting model parameters to measured frequency responses and eigenfrequencies.
+
+The model of a measurement is the sampled plant (models/plant.py) of the parameters at the
+measurement's load, sampled like the rig (its rate, the zero-order hold, its I/O chain), from
+the four commanded forces to the four measured strains; where the forces were computed from
+voltages with a force constant k_m, the model is scaled by k / k_m, k the stack force per volt
+being fitted. A measurement without a sample rate is compared with the continuous FE response.
+
+The error, per measured entry of each bending plane's 2 x 2 block and per frequency in the band
+whose coherence reaches ``min_coherence``:
+
+    r = w log(H_measured / H_model),   w = sqrt(gamma^2 / (1 - gamma^2)) (gamma^2 <= 0.999)
+
+split into its real part (the log-magnitude error) and its imaginary part (the phase error in
+rad). For the H1 estimate both parts have the variance (1 - gamma^2) / (2 n gamma^2) (n averages),
+so w weighs each frequency by how well it was measured: the resonances, where the response
+stands far above the noise, count most; antiresonances and the noise floor hardly at all.
+Measured eigenfrequencies add (ln f_model - ln f_measured) / sigma.
+
+Free parameters: any numeric key of the model configuration (``beam.youngs_modulus``,
+``damping.ratios``, ...), a list key with all its elements, and ``actuators.force_constant_n_per_v``.
+Each is fitted as ln(p / p_start) within ``BOUND_FACTOR`` of the start (damping ratios below
+0.5); gauge positions as an offset within +- ``GAUGE_BOUND_M``. Nonlinear least squares
+(scipy.optimize.least_squares, trust region reflective) from the start model; the standard
+errors come from the Jacobian at the solution, cov = s^2 (J^T J)^-1 with s^2 the residual
+variance. A fit that did not converge, that ends on a bound, or whose data do not determine a
+parameter is refused (FitError).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from beamctl.config.schema import ConfigError, merge
+from beamctl.models.analysis import eigenfrequencies, fe_frequency_response
+from beamctl.models.fe import build_model
+from beamctl.models.measured import PLANE_PAIRS, FrfData
+from beamctl.models.params import ModelParameters, parameters_from_dict
+from beamctl.models.plant import Plant, plant_config
+
+FORCE_CONSTANT_KEY = "actuators.force_constant_n_per_v"
+GAUGES_KEY = "sensors.strain_gauge_positions"
+ALIASES = {
+    "E": "beam.youngs_modulus",
+    "kr": "supports.rotational_stiffness",
+    "kl": "supports.lateral_stiffness",
+    "kp": "supports.actuator_stiffness",
+    "damping": "damping.ratios",
+    "gauges": GAUGES_KEY,
+    "force_constant": FORCE_CONSTANT_KEY,
+}
+DEFAULT_PARAMETERS = ("E", "kr", "damping", "force_constant")
+# keys that describe the model's numerics or a measured condition, not the beam: never fitted
+NOT_FITTED = ("fe.nodes", "modal.reference_load_fraction", "damping.identification_load",
+              "sensors.max_condition_number")
+BOUND_FACTOR = 3.0
+GAUGE_BOUND_M = 0.01
+MAX_DAMPING_RATIO = 0.5
+MAX_COHERENCE = 0.999
+CORRELATION_REPORTED = 0.9      # pairs correlated beyond this are reported as poorly separable
+_FAILED_RESIDUAL = 1e3          # per residual, where the parameters give no valid model
+
+
+class FitError(Exception):
+    """The fit cannot be trusted (not converged, on a bound, a parameter not determined)."""
+
+
+@dataclass(frozen=True)
+class Eigenfrequency:
+    """A measured eigenfrequency: ``mode`` (1, 2, 3) in ``plane`` at ``load_n``; ``sigma`` its
+    relative uncertainty."""
+
+    load_n: float
+    mode: int
+    frequency_hz: float
+    plane: str = "y"
+    sigma: float = 0.005
+
+
+@dataclass(frozen=True)
+class FitSettings:
+    parameters: tuple[str, ...] = DEFAULT_PARAMETERS
+    band_hz: tuple[float, float] = (0.0, math.inf)
+    min_coherence: float = 0.5
+    max_evaluations: int = 400
+
+
+@dataclass
+class FitResult:
+    keys: list[str]                          # the dotted keys, in order
+    start: dict[str, Any]                    # start values (a list for a list key)
+    values: dict[str, Any]
+    std_errors: dict[str, Any]
+    correlations: dict[str, float]           # "key_a|key_b" of the pairs beyond CORRELATION_REPORTED
+    cost: float                              # 0.5 sum r^2 at the solution
+    start_cost: float
+    residuals: int
+    evaluations: int
+    message: str
+    parameters: ModelParameters              # the fitted model
+    force_constant_n_per_v: float | None     # fitted, or None
+    correlation_matrix: list[list[float]] = field(default_factory=list)
+    names: list[str] = field(default_factory=list)   # one per scalar unknown ("damping.ratios[0]")
+
+    def to_json(self) -> dict[str, Any]:
+        return {"parameters": self.values, "std_errors": self.std_errors, "cost": self.cost,
+                "start": self.start, "start_cost": self.start_cost, "correlations": self.correlations,
+                "residuals": self.residuals, "evaluations": self.evaluations, "message": self.message}
+
+
+def resolve_keys(names: Sequence[str], start: ModelParameters) -> list[str]:
+    """Dotted keys of the parameters to fit (aliases E, kr, kl, kp, damping, gauges,
+    force_constant allowed); an unknown or non-numeric key is refused naming it."""
+    flat = _flatten(start.to_dict())
+    keys: list[str] = []
+    for name in names:
+        key = ALIASES.get(name, name)
+        if key != FORCE_CONSTANT_KEY and (key not in flat or key in NOT_FITTED):
+            numeric = sorted(k for k in flat if k not in NOT_FITTED)
+            raise ConfigError("--params", name, f"a model key or an alias: {', '.join(ALIASES)}; "
+                                                f"or one of {', '.join(numeric)}")
+        if key in keys:
+            raise ConfigError("--params", name, "each parameter once")
+        keys.append(key)
+    if not keys:
+        raise ConfigError("--params", "", "at least one parameter to fit")
+    return keys
+
+
+def _flatten(d: dict, prefix: str = "") -> dict[str, Any]:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def _nested(key: str, value: Any) -> dict:
+    out: dict = value
+    for part in reversed(key.split(".")):
+        out = {part: out}
+    return out
+
+
+def model_response(params: ModelParameters, d: FrfData, freqs_hz: np.ndarray,
+                   force_constant_n_per_v: float | None = None) -> np.ndarray:
+    """The model's [nf x 4 x 4] response as measurement ``d`` would see it at ``freqs_hz``: the
+    sampled plant at d's rate and I/O chain (the continuous FE response when d has no rate), at
+    d's load, scaled by k / k_d when the stacks' true force per volt k differs from the k_d d's
+    forces were computed with (``None``: k = k_d)."""
+    model = build_model(params)
+    if d.sample_rate_hz:
+        plant = Plant(model, plant_config({"sample_rate_hz": d.sample_rate_hz, "io": d.io or {}}))
+        g = plant.frequency_response(d.load_n, freqs_hz)
+    else:
+        g = fe_frequency_response(model, d.load_n, freqs_hz)
+    if force_constant_n_per_v is not None and d.force_constant_n_per_v:
+        g = g * (force_constant_n_per_v / d.force_constant_n_per_v)
+    return g
+
+
+class Problem:
+    """The residual function of one fit: unknowns x -> weighted residuals."""
+
+    def __init__(self, start: ModelParameters, keys: list[str], data: Sequence[FrfData],
+                 eigen: Sequence[Eigenfrequency], settings: FitSettings) -> None:
+        self.start = start
+        self.keys = keys
+        self.data = list(data)
+        self.eigen = list(eigen)
+        flat = _flatten(start.to_dict())
+        known = [d.force_constant_n_per_v for d in self.data if d.force_constant_n_per_v]
+        if FORCE_CONSTANT_KEY in keys and not known:
+            raise ConfigError("--params", FORCE_CONSTANT_KEY,
+                              "measurements whose forces were computed from voltages (none of the files "
+                              "records force_constant_n_per_v, so the stack force per volt cannot be fitted)")
+        self.force_constant_start = known[0] if known else None
+        self.start_values: dict[str, Any] = {
+            k: (self.force_constant_start if k == FORCE_CONSTANT_KEY else flat[k]) for k in keys}
+        # one scalar unknown per value (a list key: one per element)
+        self.names: list[str] = []
+        self.slots: list[tuple[str, int | None]] = []
+        low, high = [], []
+        for k in keys:
+            v = self.start_values[k]
+            for i, x0 in enumerate(v if isinstance(v, list) else [v]):
+                self.names.append(f"{k}[{i}]" if isinstance(v, list) else k)
+                self.slots.append((k, i if isinstance(v, list) else None))
+                if k == GAUGES_KEY:
+                    low.append(-GAUGE_BOUND_M)
+                    high.append(GAUGE_BOUND_M)
+                else:
+                    top = BOUND_FACTOR if k != "damping.ratios" else min(BOUND_FACTOR, MAX_DAMPING_RATIO / x0)
+                    low.append(-math.log(BOUND_FACTOR))
+                    high.append(math.log(top))
+        self.bounds = (np.array(low), np.array(high))
+        self.selection = [self._select(d, settings) for d in self.data]
+        if sum(len(f) for f, _ in self.selection) == 0 and not self.eigen:
+            raise ConfigError("--band", f"{settings.band_hz[0]:g}:{settings.band_hz[1]:g}",
+                              f"a band with measured points of coherence >= {settings.min_coherence:g} "
+                              "(none of the files has any)")
+
+    @staticmethod
+    def _select(d: FrfData, s: FitSettings):
+        """(frequency indices, [(out, in, weights)]) of the points that enter the fit."""
+        lo, hi = s.band_hz
+        in_band = (d.frequencies_hz >= lo) & (d.frequencies_hz <= hi)
+        if d.sample_rate_hz:
+            in_band &= d.frequencies_hz < 0.5 * d.sample_rate_hz
+        entries = []
+        for pairs in PLANE_PAIRS.values():
+            for i, j in pairs:
+                if not np.isfinite(d.frf[0, i, j]):
+                    continue
+                g2 = d.coherence[:, i, j]
+                ok = in_band & (g2 >= s.min_coherence) & (np.abs(d.frf[:, i, j]) > 0)
+                g2 = np.minimum(g2, MAX_COHERENCE)
+                entries.append((i, j, ok, np.sqrt(g2 / (1.0 - g2))))
+        used = np.flatnonzero(np.any([e[2] for e in entries], axis=0)) if entries else np.zeros(0, int)
+        return used, [(i, j, ok[used], w[used]) for i, j, ok, w in entries]
+
+    def values(self, x: np.ndarray) -> dict[str, Any]:
+        out = {k: (list(v) if isinstance(v, list) else v) for k, v in self.start_values.items()}
+        for xi, (k, i) in zip(x, self.slots, strict=True):
+            base = self.start_values[k] if i is None else self.start_values[k][i]
+            value = base + xi if k == GAUGES_KEY else base * math.exp(xi)
+            if i is None:
+                out[k] = value
+            else:
+                out[k][i] = value
+        return out
+
+    def model(self, values: dict[str, Any]) -> ModelParameters:
+        overrides: dict = {}
+        for k, v in values.items():
+            if k != FORCE_CONSTANT_KEY:
+                overrides = merge(overrides, _nested(k, v))
+        return parameters_from_dict(merge(self.start.to_dict(), overrides), "fit")
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        values = self.values(x)
+        try:
+            params = self.model(values)
+            parts = []
+            for d, (used, entries) in zip(self.data, self.selection, strict=True):
+                if not len(used):
+                    continue
+                g = model_response(params, d, d.frequencies_hz[used], values.get(FORCE_CONSTANT_KEY))
+                for i, j, ok, w in entries:
+                    with np.errstate(divide="ignore", invalid="ignore"):
+                        e = np.log(d.frf[used, i, j] / g[:, i, j])
+                    e = np.where(ok, w * e, 0.0)
+                    parts += [e.real, e.imag]
+            if self.eigen:
+                model = build_model(params)
+                for m in self.eigen:
+                    f = eigenfrequencies(model, m.load_n, max(3, m.mode), m.plane)[m.mode - 1]
+                    parts.append(np.array([(math.log(max(f, 1e-9)) - math.log(m.frequency_hz)) / m.sigma]))
+            r = np.concatenate(parts)
+        except (ConfigError, np.linalg.LinAlgError):
+            return np.full(self.size, _FAILED_RESIDUAL)
+        if not np.all(np.isfinite(r)):
+            return np.where(np.isfinite(r), r, _FAILED_RESIDUAL)
+        return r
+
+    @property
+    def size(self) -> int:
+        n = sum(2 * len(used) * len(entries) for used, entries in self.selection if len(used))
+        return n + len(self.eigen)
+
+
+def fit(start: ModelParameters, data: Sequence[FrfData], settings: FitSettings = FitSettings(),
+        eigen: Sequence[Eigenfrequency] = (),
+        progress: Callable[[int, float], None] | None = None) -> FitResult:
+    """Fit ``settings.parameters`` of ``start`` to the measurements (see the module docstring)."""
+    keys = resolve_keys(settings.parameters, start)
+    problem = Problem(start, keys, data, eigen, settings)
+    x0 = np.zeros(len(problem.names))
+    calls = {"n": 0}
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        r = problem.residuals(x)
+        calls["n"] += 1
+        if progress is not None:
+            progress(calls["n"], 0.5 * float(r @ r))
+        return r
+
+    r0 = problem.residuals(x0)
+    result = least_squares(fun, x0, bounds=problem.bounds, method="trf", x_scale=1.0,
+                           diff_step=1e-4, max_nfev=settings.max_evaluations)
+    if result.status <= 0:
+        raise FitError(f"the fit did not converge within {settings.max_evaluations} evaluations "
+                       f"({result.message}); nothing written. Fit fewer parameters, narrow --band, or "
+                       f"start from a model closer to the rig")
+    at_bound = [n for n, active in zip(problem.names, result.active_mask, strict=True) if active]
+    if at_bound:
+        raise FitError(f"{', '.join(at_bound)} ended on the bound of the fit (a factor {BOUND_FACTOR:g} from "
+                       f"the start, gauges +-{GAUGE_BOUND_M * 1e3:g} mm): the data do not place it within "
+                       f"the bounds; nothing written. Start from a closer model or leave it out of --params")
+    jac = result.jac
+    m, p = jac.shape
+    jtj = jac.T @ jac
+    column = np.sqrt(np.diag(jtj))
+    weak = [n for n, c in zip(problem.names, column, strict=True) if not c > 1e-9 * max(column.max(), 1e-300)]
+    if weak:
+        raise FitError(f"the data do not depend on {', '.join(weak)}: it cannot be fitted from these "
+                       f"measurements; leave it out of --params")
+    s2 = 2.0 * result.cost / max(m - p, 1)
+    scaled = jtj / np.outer(column, column)
+    cov_x = s2 * np.linalg.pinv(scaled) / np.outer(column, column)
+    sd_x = np.sqrt(np.clip(np.diag(cov_x), 0.0, None))
+    corr = cov_x / np.outer(sd_x, sd_x)
+    values = problem.values(result.x)
+    std: dict[str, Any] = {}
+    for n_i, (k, i) in enumerate(problem.slots):
+        v = values[k] if i is None else values[k][i]
+        sd = sd_x[n_i] if k == GAUGES_KEY else abs(v) * sd_x[n_i]
+        if i is None:
+            std[k] = float(sd)
+        else:
+            std.setdefault(k, []).append(float(sd))
+    correlations = {f"{problem.names[a]}|{problem.names[b]}": float(corr[a, b])
+                    for a in range(p) for b in range(a + 1, p) if abs(corr[a, b]) > CORRELATION_REPORTED}
+    clean = {k: (float(v) if not isinstance(v, list) else [float(e) for e in v]) for k, v in values.items()}
+    return FitResult(keys=keys, start=problem.start_values, values=clean, std_errors=std,
+                     correlations=correlations, cost=float(result.cost), start_cost=0.5 * float(r0 @ r0),
+                     residuals=m, evaluations=int(result.nfev), message=str(result.message),
+                     parameters=problem.model(values),
+                     force_constant_n_per_v=clean.get(FORCE_CONSTANT_KEY),
+                     correlation_matrix=corr.tolist(), names=problem.names)

@@ -1,0 +1,282 @@
+"""Identification of the rig: excite the stacks through the HAL at a fixed axial load, record
+the four strains and the forces the applied voltages give, and estimate the 4 x 4 frequency
+response matrix strains / forces with its coherence.
+
+The excitation runs inside the control loop (rt/loop.py) as the controller's own output, so
+everything that guards a control run guards it too: the supervisor's input checks (strain
+limit, load range, stale input, late answers), the voltage limits, the ramp to bias on a stop,
+a fault or Ctrl-C. Open loop (below the critical load) the stacks sit at bias plus the
+excitation; in closed loop (``closed_loop``) the gain table's law runs and the excitation is
+added to its voltages. A strain that moves more than ``max_strain`` from where it was when the
+excitation started ends the run (ramp to bias); nothing is written then.
+
+The inputs are excited one after the other (``supports``: A, B or both: the y and z force of
+each), each for one transient period and ``averages`` periods of a periodic signal
+(tools/excitation.py). Per input j and output i, over the averaged periods (rectangular window,
+one period a segment: a periodic signal has no leakage):
+
+- open loop, the H1 estimator: H_ij = S_(u_j y_i) / S_(u_j u_j), u_j the force the applied
+  voltages give (the controller's own stack geometry and force constant);
+- closed loop, the same cross-spectra taken against the excitation r_j (the reference), so that
+  the feedback of the measurement noise does not bias the estimate: H = S_yr S_ur^-1 over the
+  four inputs (which must all be excited);
+- coherence gamma^2_ij = |S_(r_j y_i)|^2 / (S_(r_j r_j) S_(y_i y_i)) (in open loop r_j is u_j).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, replace
+
+import numpy as np
+import scipy.signal as sig
+
+from beamctl.config.schema import ConfigError
+from beamctl.gains.table import GainTable
+from beamctl.models import build_model, critical_load
+from beamctl.models.measured import FrfData, nan_matrix
+from beamctl.rt.allocation import geometry as controller_geometry
+from beamctl.rt.controller import FLAG_NO_NEW_SAMPLE, I_FLAGS, I_LOAD, Controller
+from beamctl.rt.loop import ControlLoop
+from beamctl.rt.safety import Fault
+from beamctl.tools.excitation import (
+    SIGNALS,
+    SUPPORT_INPUTS,
+    force_gains,
+    input_names,
+    periodic_signal,
+    voltage_directions,
+)
+from beamctl.tools.service import ServiceConfig, build_hal, build_plant, plant_geometry, plant_settings
+from beamctl.tools.signals import Interrupted
+
+# open loop only below this fraction of the controller model's critical load: the beam at bias
+# is then stiff enough that a small excitation stays small
+OPEN_LOOP_LOAD_FRACTION = 0.95
+# the rig's load cell must read the requested load within this (N, or fraction of the load)
+LOAD_TOLERANCE_N = 25.0
+LOAD_TOLERANCE_FRACTION = 0.02
+
+
+class IdentificationError(Exception):
+    """The identification could not give a measurement (a fault, the strain limit, a load
+    that is not the requested one); the stacks were ramped to bias."""
+
+
+@dataclass(frozen=True)
+class IdentifySettings:
+    load_n: float
+    signal: str = "multisine"
+    band_hz: tuple[float, float] = (10.0, 1200.0)
+    amplitude_v: float = 5.0
+    resolution_hz: float = 1.0
+    averages: int = 8
+    supports: str = "AB"
+    closed_loop: bool = False
+    max_strain: float = 3e-4
+    seed: int = 0
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["band_hz"] = list(self.band_hz)
+        return d
+
+
+@dataclass
+class Recording:
+    """What one identification run recorded, per excited input: the strains, the applied
+    forces and the excitation's force along that input, one row per excitation sample."""
+
+    inputs: tuple[int, ...]
+    period: int
+    periods: int                        # per input, the transient one included
+    strains: np.ndarray                 # [n x 4]
+    forces: np.ndarray                  # [n x 4]
+    reference: np.ndarray               # [n] the excitation's force along its input
+    loads_n: np.ndarray                 # [n]
+    missing_samples: int = 0
+
+
+def check_settings(s: IdentifySettings, cfg: ServiceConfig, sample_rate_hz: float) -> None:
+    """Refuse what cannot be run safely or cannot give a measurement, naming the flag."""
+    if s.signal not in SIGNALS:
+        raise ConfigError("--signal", s.signal, f"one of {', '.join(SIGNALS)}")
+    if s.supports not in SUPPORT_INPUTS:
+        raise ConfigError("--supports", s.supports, "A, B or AB")
+    if not (math.isfinite(s.load_n) and s.load_n >= 0):
+        raise ConfigError("--load", s.load_n, "a load in N, >= 0")
+    if not s.averages >= 1:
+        raise ConfigError("--averages", s.averages, "at least 1 period to average")
+    a = cfg.controller.actuators
+    room = min(a.bias_voltage - a.min_voltage_v, a.max_voltage_v - a.bias_voltage)
+    if not 0 < s.amplitude_v <= room:
+        raise ConfigError("--amplitude", s.amplitude_v,
+                          f"a stack swing in V, > 0 and at most {room:g} V (bias {a.bias_voltage:g} V "
+                          f"within the limits {a.min_voltage_v:g}..{a.max_voltage_v:g} V)")
+    if not 0 < s.max_strain:
+        raise ConfigError("--max-strain", s.max_strain, "a strain amplitude > 0")
+    if s.closed_loop and s.supports != "AB":
+        raise ConfigError("--supports", s.supports,
+                          "AB with --closed-loop: under feedback every force moves, so all four "
+                          "must be excited to separate them")
+    if not s.closed_loop:
+        critical = critical_load(build_model(cfg.model))
+        if s.load_n >= OPEN_LOOP_LOAD_FRACTION * critical:
+            raise ConfigError("--load", s.load_n,
+                              f"a load below {OPEN_LOOP_LOAD_FRACTION:g} x the model's critical load "
+                              f"{critical:.0f} N for an open-loop identification (the stacks at bias "
+                              f"do not hold the beam there); use --closed-loop above it")
+    periodic_signal(s.signal, sample_rate_hz, s.band_hz, s.resolution_hz, s.seed)   # its own checks
+
+
+def excitation_plan(s: IdentifySettings, cfg: ServiceConfig, sample_rate_hz: float):
+    """(the [n x 6] voltage rows, the reference force [n], inputs, period, periods per input)."""
+    g = controller_geometry(cfg.controller.actuators)     # the controller's belief of the stacks
+    directions = voltage_directions(g)
+    gains = force_gains(g)
+    inputs = SUPPORT_INPUTS[s.supports]
+    periods = s.averages + 1
+    rows, reference = [], []
+    for k, j in enumerate(inputs):
+        e = periodic_signal(s.signal, sample_rate_hz, s.band_hz, s.resolution_hz, s.seed + 7919 * k)
+        values = np.tile(e.values, periods) * s.amplitude_v
+        rows.append(np.outer(values, directions[j]))
+        reference.append(values * gains[j])
+    period = len(e.values)
+    return np.vstack(rows), np.concatenate(reference), inputs, period, periods
+
+
+def record(cfg: ServiceConfig, table: GainTable, s: IdentifySettings, progress=None) -> Recording:
+    """Run the excitation through the configured HAL and record it (see the module docstring).
+    Raises IdentificationError (the stacks at bias) or Interrupted (Ctrl-C, SIGTERM)."""
+    rate = table.design.sample_rate_hz
+    check_settings(s, cfg, rate)
+    excitation, reference, inputs, period, periods = excitation_plan(s, cfg, rate)
+    n = len(excitation)
+    if cfg.hal.backend == "sim":
+        from beamctl.hal.sim import SimBackend
+
+        load = {"start": s.load_n, "end": s.load_n, "rate": 1.0, "hold": 0.0}
+        plant = build_plant(cfg, table, {"load": load})
+        hal = SimBackend(plant, plant_geometry(cfg), pace=cfg.hal.sim["pace"])
+    else:
+        hal = build_hal(cfg, table)
+    controller = Controller(table, replace(cfg.controller, pacing="sample"), excitation=excitation,
+                            law=s.closed_loop)
+    strains = np.zeros((n, 4))
+    forces = np.zeros((n, 4))
+    loads = np.zeros(n)
+    state = {"stop": "", "missing": 0, "start": None}
+    tolerance = max(LOAD_TOLERANCE_N, LOAD_TOLERANCE_FRACTION * s.load_n)
+    every = max(1, n // 200)
+
+    def on_cycle(loop: ControlLoop) -> None:
+        c = loop.controller
+        k = c.excitation_index
+        if state["stop"]:
+            return
+        if int(c.record[I_FLAGS]) & FLAG_NO_NEW_SAMPLE and k:
+            state["missing"] += 1
+        if k == 0:
+            return
+        if state["start"] is None:
+            state["start"] = c.strains.copy()
+            load = c.record[I_LOAD]
+            if abs(load - s.load_n) > tolerance:
+                state["stop"] = (f"the load cell reads {load:.0f} N, not the requested {s.load_n:g} N "
+                                 f"(within {tolerance:.0f} N): set the rig's load first")
+                loop.request_stop("load")
+                return
+        i = k - 1
+        strains[i] = c.strains
+        forces[i] = c.applied_forces
+        loads[i] = c.record[I_LOAD]
+        deviation = float(np.max(np.abs(strains[i] - state["start"])))
+        if deviation > s.max_strain:
+            state["stop"] = (f"a strain moved {deviation:.3g} from its value at the start, beyond "
+                             f"--max-strain {s.max_strain:g}: the excitation was stopped and the "
+                             f"stacks ramped to bias (lower --amplitude, or check the rig)")
+            loop.request_stop("strain amplitude")
+        elif k >= n:
+            loop.request_stop("excitation done")
+        if progress is not None and (k % every == 0 or k >= n):
+            j = inputs[min(i // (periods * period), len(inputs) - 1)]
+            progress(k, n, f"force {input_names((j,))[0]}")
+
+    loop = ControlLoop(controller, hal, stop_on_fault=True, on_cycle=on_cycle)
+    try:
+        result = loop.run(acquire_rt=False)
+    finally:
+        hal.close()
+    if result.signal_received:
+        raise Interrupted(result.signal_received, "the identification (the stacks ramped to bias)")
+    if controller.supervisor.fault != Fault.NONE:
+        raise IdentificationError(f"the controller faulted: {controller.supervisor.reason()} "
+                                  f"(the stacks ramped to bias; nothing written)")
+    if state["stop"]:
+        raise IdentificationError(state["stop"])
+    if controller.excitation_index < n:
+        raise IdentificationError(f"the run ended after {controller.excitation_index} of {n} excitation "
+                                  f"samples ({result.reason or result.state})")
+    return Recording(inputs=inputs, period=period, periods=periods, strains=strains, forces=forces,
+                     reference=reference, loads_n=loads, missing_samples=state["missing"])
+
+
+def estimate(rec: Recording, sample_rate_hz: float, band_hz: tuple[float, float],
+             closed_loop: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(frequencies [nf], H [nf x 4 x 4], coherence [nf x 4 x 4]) from a recording, at the
+    lines of the period within the band (see the module docstring)."""
+    p = rec.period
+    per_input = rec.periods * p
+    freqs = np.fft.rfftfreq(p, 1.0 / sample_rate_hz)
+    keep = (freqs >= max(band_hz[0], freqs[1])) & (freqs <= band_hz[1])
+    nf = int(keep.sum())
+    s_yr = np.zeros((nf, 4, 4), dtype=complex)   # [f, output, input j]
+    s_ur = np.zeros((nf, 4, 4), dtype=complex)   # [f, force, input j]
+    coherence = nan_matrix(nf)[1]
+    kwargs = {"fs": sample_rate_hz, "window": "boxcar", "nperseg": p, "noverlap": 0, "detrend": False}
+    for k, j in enumerate(rec.inputs):
+        rows = slice(k * per_input + p, (k + 1) * per_input)     # the transient period dropped
+        r = rec.forces[rows, j] if not closed_loop else rec.reference[rows]
+        _, s_rr = sig.welch(r, **kwargs)
+        for i in range(4):
+            _, c_ry = sig.csd(r, rec.strains[rows, i], **kwargs)
+            _, c_ru = sig.csd(r, rec.forces[rows, i], **kwargs)
+            _, s_yy = sig.welch(rec.strains[rows, i], **kwargs)
+            s_yr[:, i, j] = c_ry[keep]
+            s_ur[:, i, j] = c_ru[keep]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                coherence[:, i, j] = np.abs(c_ry[keep]) ** 2 / (s_rr[keep] * s_yy[keep])
+    frf = nan_matrix(nf)[0]
+    cols = list(rec.inputs)
+    if closed_loop:
+        # H S_ur = S_yr  <=>  S_ur^T H^T = S_yr^T
+        frf[:] = np.linalg.solve(s_ur.transpose(0, 2, 1), s_yr.transpose(0, 2, 1)).transpose(0, 2, 1)
+    else:
+        for j in cols:
+            frf[:, :, j] = s_yr[:, :, j] / s_ur[:, j, j][:, None]
+    return freqs[keep], frf, np.clip(coherence, 0.0, 1.0, where=np.isfinite(coherence), out=coherence)
+
+
+def identify(cfg: ServiceConfig, table: GainTable, s: IdentifySettings,
+             progress=None) -> tuple[FrfData, dict]:
+    """Record and estimate; returns the measurement and a report (timing, counts)."""
+    start = time.perf_counter()
+    rate = table.design.sample_rate_hz
+    rec = record(cfg, table, s, progress)
+    freqs, frf, coherence = estimate(rec, rate, s.band_hz, s.closed_loop)
+    a = cfg.controller.actuators
+    io = plant_settings(cfg, table).io if cfg.hal.backend == "sim" else table.design.io
+    settings = {"identify": s.to_dict(), "backend": cfg.hal.backend, "config": cfg.source,
+                "gain_table": str(cfg.table_path), "inputs": input_names(rec.inputs),
+                "period_samples": rec.period, "resolution_hz": rate / rec.period,
+                "bias_voltage_v": a.bias_voltage, "orientation_deg": list(a.orientation_deg),
+                "missing_samples": rec.missing_samples}
+    data = FrfData(frequencies_hz=freqs, frf=frf, coherence=coherence, load_n=float(np.mean(rec.loads_n)),
+                   sample_rate_hz=rate, force_constant_n_per_v=a.force_constant, io=io.to_dict(),
+                   settings=settings)
+    report = {"wall_s": time.perf_counter() - start, "rig_s": len(rec.loads_n) / rate,
+              "samples": len(rec.loads_n), "missing_samples": rec.missing_samples,
+              "mean_load_n": data.load_n}
+    return data, report
