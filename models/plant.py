@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -388,6 +388,11 @@ class Plant:
         self.time += self.sample_period
         self.axial_load = self.config.load.load_at(self.time)
         self._use_load(self.axial_load)
+
+    def follow_load(self, programme: LoadRamp) -> None:
+        """From now on follow another load programme (on the plant's own clock): an operator
+        moving the load by hand."""
+        self.config = replace(self.config, load=programme)
 
     def _delay(self, forces_n: np.ndarray) -> None:
         """Inputs <- u_k-whole (and u_k-whole-1); the ring's oldest entry then takes u_k."""

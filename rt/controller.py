@@ -124,6 +124,7 @@ class Controller:
         if self._excitation is not None and (self._excitation.ndim != 2 or self._excitation.shape[1] != 6):
             raise ValueError(f"excitation must be [n x 6] volts, got shape {self._excitation.shape}")
         self.excitation_index = 0       # excitation rows applied since the start
+        self.excitation_enabled = True  # the rows advance only while enabled (set between steps)
         self._v_min, self._v_max = config.actuators.min_voltage_v, config.actuators.max_voltage_v
 
         beam = table.model_parameters.beam
@@ -232,7 +233,7 @@ class Controller:
         else:
             np.dot(self._c0_phi_inv, self.strains, out=self.q)
             self._target[:] = self._bias
-        if self._excitation is not None:
+        if self._excitation is not None and self.excitation_enabled:
             self._excite()
         # the bumpless start: voltages faded in from bias
         r = self.record

@@ -7,7 +7,12 @@ everything that guards a control run guards it too: the supervisor's input check
 limit, load range, stale input, late answers), the voltage limits, the ramp to bias on a stop,
 a fault or Ctrl-C. Open loop (below the critical load) the stacks sit at bias plus the
 excitation; in closed loop (``closed_loop``) the gain table's law runs and the excitation is
-added to its voltages. A strain that moves more than ``max_strain`` from where it was when the
+added to its voltages. The excitation starts once the load cell has read the requested load for
+``SETTLE_S`` (the simulated rig brings the load there itself; in closed loop from below the
+critical load, under control); after it, in closed loop, the law keeps holding the beam until the
+load is back below ``OPEN_LOOP_LOAD_FRACTION`` of the critical load (the operator lowers it; the
+simulated rig does so itself), and only then do the stacks ramp to bias.
+A strain that moves more than ``max_strain`` from where it was when the
 excitation started ends the run (ramp to bias); nothing is written then.
 
 The inputs are excited one after the other (``supports``: A, B or both: the y and z force of
@@ -36,6 +41,7 @@ from beamctl.config.schema import ConfigError
 from beamctl.gains.table import GainTable
 from beamctl.models import build_model, critical_load
 from beamctl.models.measured import FrfData, nan_matrix
+from beamctl.models.plant import LoadRamp
 from beamctl.rt.allocation import geometry as controller_geometry
 from beamctl.rt.controller import FLAG_NO_NEW_SAMPLE, I_FLAGS, I_LOAD, Controller
 from beamctl.rt.loop import ControlLoop
@@ -54,9 +60,16 @@ from beamctl.tools.signals import Interrupted
 # open loop only below this fraction of the controller model's critical load: the beam at bias
 # is then stiff enough that a small excitation stays small
 OPEN_LOOP_LOAD_FRACTION = 0.95
-# the rig's load cell must read the requested load within this (N, or fraction of the load)
+# the rig's load cell must read the requested load within this (N, or fraction of the load) for
+# SETTLE_S before the excitation starts, and does so within LOAD_WAIT_S or the run ends
 LOAD_TOLERANCE_N = 25.0
 LOAD_TOLERANCE_FRACTION = 0.02
+SETTLE_S = 0.5
+LOAD_WAIT_S = 120.0
+# the simulated rig, closed loop: the load rises under control from this fraction of the model's
+# critical load to the requested one at this rate (as an operator would bring it there)
+CLOSED_LOOP_START_FRACTION = 0.8
+SIM_LOAD_RATE_N_PER_S = 200.0
 
 
 class IdentificationError(Exception):
@@ -157,37 +170,45 @@ def record(cfg: ServiceConfig, table: GainTable, s: IdentifySettings, progress=N
     if cfg.hal.backend == "sim":
         from beamctl.hal.sim import SimBackend
 
-        load = {"start": s.load_n, "end": s.load_n, "rate": 1.0, "hold": 0.0}
-        plant = build_plant(cfg, table, {"load": load})
-        hal = SimBackend(plant, plant_geometry(cfg), pace=cfg.hal.sim["pace"])
+        start = s.load_n
+        if s.closed_loop:
+            start = min(s.load_n, CLOSED_LOOP_START_FRACTION * critical_load(build_model(cfg.model)))
+        load = {"start": start, "end": s.load_n, "rate": SIM_LOAD_RATE_N_PER_S, "hold": 0.0}
+        sim_plant = build_plant(cfg, table, {"load": load})
+        hal = SimBackend(sim_plant, plant_geometry(cfg), pace=cfg.hal.sim["pace"])
     else:
+        sim_plant = None
         hal = build_hal(cfg, table)
     controller = Controller(table, replace(cfg.controller, pacing="sample"), excitation=excitation,
                             law=s.closed_loop)
+    controller.excitation_enabled = False           # until the load has settled at s.load_n
     strains = np.zeros((n, 4))
     forces = np.zeros((n, 4))
     loads = np.zeros(n)
-    state = {"stop": "", "missing": 0, "start": None}
+    state = {"stop": "", "missing": 0, "start": None, "cycles": 0, "settled": 0, "recorded": 0}
     tolerance = max(LOAD_TOLERANCE_N, LOAD_TOLERANCE_FRACTION * s.load_n)
+    settle, wait = round(SETTLE_S * rate), round(LOAD_WAIT_S * rate)
     every = max(1, n // 200)
+
+    # closed loop above the critical load, the stacks hold the beam until the load is back below
+    # where the beam stands without them
+    safe_load = OPEN_LOOP_LOAD_FRACTION * critical_load(build_model(cfg.model))
 
     def on_cycle(loop: ControlLoop) -> None:
         c = loop.controller
         k = c.excitation_index
         if state["stop"]:
             return
-        if int(c.record[I_FLAGS]) & FLAG_NO_NEW_SAMPLE and k:
-            state["missing"] += 1
-        if k == 0:
+        if not c.excitation_enabled:
+            wait_for_load(loop, c)
             return
-        if state["start"] is None:
-            state["start"] = c.strains.copy()
-            load = c.record[I_LOAD]
-            if abs(load - s.load_n) > tolerance:
-                state["stop"] = (f"the load cell reads {load:.0f} N, not the requested {s.load_n:g} N "
-                                 f"(within {tolerance:.0f} N): set the rig's load first")
-                loop.request_stop("load")
-                return
+        if k <= state["recorded"]:
+            if k >= n:
+                hold_until_safe(loop, c)
+            elif int(c.record[I_FLAGS]) & FLAG_NO_NEW_SAMPLE:
+                state["missing"] += 1
+            return
+        state["recorded"] = k
         i = k - 1
         strains[i] = c.strains
         forces[i] = c.applied_forces
@@ -198,11 +219,38 @@ def record(cfg: ServiceConfig, table: GainTable, s: IdentifySettings, progress=N
                              f"--max-strain {s.max_strain:g}: the excitation was stopped and the "
                              f"stacks ramped to bias (lower --amplitude, or check the rig)")
             loop.request_stop("strain amplitude")
-        elif k >= n:
-            loop.request_stop("excitation done")
+            return
         if progress is not None and (k % every == 0 or k >= n):
             j = inputs[min(i // (periods * period), len(inputs) - 1)]
             progress(k, n, f"force {input_names((j,))[0]}")
+        if k >= n:
+            if sim_plant is not None and s.load_n > safe_load:     # the simulated operator lowers it
+                sim_plant.follow_load(LoadRamp(s.load_n, CLOSED_LOOP_START_FRACTION * safe_load,
+                                               SIM_LOAD_RATE_N_PER_S, hold=sim_plant.time))
+            hold_until_safe(loop, c)
+
+    def hold_until_safe(loop: ControlLoop, c: Controller) -> None:
+        load = c.record[I_LOAD]
+        if load < safe_load:
+            loop.request_stop("excitation done")
+        elif progress is not None and state["cycles"] % every == 0:
+            progress(n, n, f"lower the load below {safe_load:.0f} N")
+        state["cycles"] += 1
+
+    def wait_for_load(loop: ControlLoop, c: Controller) -> None:
+        """The excitation starts once the load cell has read the requested load for SETTLE_S."""
+        state["cycles"] += 1
+        load = c.record[I_LOAD]
+        state["settled"] = state["settled"] + 1 if abs(load - s.load_n) <= tolerance else 0
+        if state["settled"] >= settle:
+            state["start"] = c.strains.copy()
+            c.excitation_enabled = True
+        elif state["cycles"] > wait:
+            state["stop"] = (f"the load cell reads {load:.0f} N, not the requested {s.load_n:g} N (within "
+                             f"{tolerance:.0f} N), after {LOAD_WAIT_S:g} s: set the rig's load first")
+            loop.request_stop("load")
+        elif progress is not None and state["cycles"] % every == 0:
+            progress(0, n, f"load {load:.0f} N")
 
     loop = ControlLoop(controller, hal, stop_on_fault=True, on_cycle=on_cycle)
     try:
