@@ -54,6 +54,8 @@ def add_parser(sub) -> None:
     p.add_argument("--eigenfrequencies", metavar="CSV",
                    help="measured eigenfrequencies: columns load_n, mode, frequency_hz, and optionally "
                         "plane (y/z) and sigma (relative uncertainty, default 0.005)")
+    p.add_argument("--max-evaluations", type=argtypes.number(low=1, integer=True), default=400, metavar="N",
+                   help="model evaluations before the fit is given up as not converged (default 400)")
     p.add_argument("--out", metavar="MODEL.yaml", required=True, help="the fitted model, as a configuration")
     p.add_argument("--plot", metavar="DIR", help="also write figure 5a (before and after the fit) into DIR")
     p.add_argument("--json", action="store_true", help="print the result as one JSON object")
@@ -159,7 +161,8 @@ def run(args: argparse.Namespace) -> int:
 
     start = load_model_file(args.config)
     settings = FitSettings(parameters=tuple(p.strip() for p in args.params.split(",") if p.strip()),
-                           band_hz=parse_band(args.band), min_coherence=args.min_coherence)
+                           band_hz=parse_band(args.band), min_coherence=args.min_coherence,
+                           max_evaluations=int(args.max_evaluations))
     if settings.min_coherence >= 1:
         raise ConfigError("--min-coherence", settings.min_coherence, "a coherence below 1")
     out = check_file(args.out, "--out")

@@ -96,6 +96,19 @@ class _Found(str):
         return str(self)
 
 
+def check_frf_out(path: str | Path) -> list[Path]:
+    """The two files ``write_frf`` writes for ``path`` (``<stem>.npz``, ``<stem>.mat``), each
+    checked writable: a command refuses a bad ``--out`` before its work starts."""
+    p = Path(path)
+    if p.suffix.lower() not in ("", ".npz", ".mat"):
+        raise ConfigError("--out", str(path), "a file name ending in .npz or .mat (both are written)")
+    stem = p.with_suffix("")
+    targets = [stem.with_name(stem.name + ".npz"), stem.with_name(stem.name + ".mat")]
+    for target in targets:
+        check_file(target, "--out")
+    return targets
+
+
 def write_frf(data: FrfData, path: str | Path) -> list[Path]:
     """Write ``data`` as ``<stem>.npz`` and ``<stem>.mat`` next to each other and return both
     paths (``path`` ends in ``.npz`` or ``.mat``, or has no suffix).
@@ -104,12 +117,8 @@ def write_frf(data: FrfData, path: str | Path) -> list[Path]:
     is refused with the same ConfigError, so whatever is written reads back; a place that
     cannot be written is refused with OutputPathError, before anything is written.
     """
-    p = Path(path)
-    if p.suffix.lower() not in ("", ".npz", ".mat"):
-        raise ConfigError("--out", str(path), "a file name ending in .npz or .mat (both are written)")
-    stem = p.with_suffix("")
-    targets = [stem.with_name(stem.name + ".npz"), stem.with_name(stem.name + ".mat")]
-    source = f"{data.source or 'measurement'} (to be written to {stem})"
+    targets = check_frf_out(path)
+    source = f"{data.source or 'measurement'} (to be written to {targets[0].with_suffix('')})"
     checked = _validated(data.frequencies_hz, data.frf, data.coherence, data.load_n, data.sample_rate_hz,
                          data.force_constant_n_per_v, data.io, data.settings, source)
     variables: dict[str, Any] = {
@@ -125,8 +134,6 @@ def write_frf(data: FrfData, path: str | Path) -> list[Path]:
         "io_json": _json_text(checked.io, "io", source),
         "settings_json": _json_text(checked.settings, "settings", source),
     }
-    for target in targets:
-        check_file(target, "--out")
     with replacing(targets[0]) as temp, open(temp, "wb") as stream:
         np.savez(stream, **variables, outputs=np.array(OUTPUTS), inputs=np.array(INPUTS))
     with replacing(targets[1]) as temp:
