@@ -227,16 +227,51 @@ class Controller:
         return self.voltages
 
     def _control(self) -> None:
+        r = self.record
         if self._law:
-            if not self._law_step():
+            schedule = self.schedule
+            schedule.follow(r[I_LOAD])
+            r[I_LOAD_FILTERED] = schedule.filtered_load_n
+            if schedule.out_of_range:
+                r[I_FLAGS] += FLAG_LOAD_OUT_OF_TABLE
+                self.fault(Fault.LOAD_OUT_OF_TABLE_RANGE,
+                           f"filtered load {schedule.filtered_load_n:.1f} N outside the table's "
+                           f"[{self.table.loads_n[0]:g}, {self.table.loads_n[-1]:g}] N")
+                self._ramp()
+                self._take_applied_forces()
                 return
-        else:
+            # 1. q = (C0 Phi)^-1 y (eq. 30), for telemetry
+            np.dot(self._c0_phi_inv, self.strains, out=self.q)
+            # 2. integral action with anti-windup
+            np.dot(self._integral_map, self.strains, out=self._dxi)
+            alloc = self.allocator
+            if self._anti_windup and (alloc.scale_a < 1.0 or alloc.scale_b < 1.0):
+                schedule.integral_effect(self._dxi, self._du)       # -Ki dxi: what the increment does
+                u, du = self.u, self._du
+                winds = ((alloc.scale_a < 1.0 and du[0] * u[0] + du[1] * u[1] > 0.0)
+                         or (alloc.scale_b < 1.0 and du[2] * u[2] + du[3] * u[3] > 0.0))
+                if winds:
+                    r[I_FLAGS] += FLAG_INTEGRATOR_HELD
+                else:
+                    self.xi += self._dxi
+            else:
+                self.xi += self._dxi
+            # 3. u = -(C x_c + D y) - Ki xi at the filtered load
+            schedule.output(self._signals, self.u)
+            # 4. allocation
+            alloc.allocate(self.u, self._target)
+            r[I_SCALE_A] = alloc.scale_a
+            r[I_SCALE_B] = alloc.scale_b
+            if alloc.scale_a < 1.0:
+                r[I_FLAGS] += FLAG_SATURATED_A
+            if alloc.scale_b < 1.0:
+                r[I_FLAGS] += FLAG_SATURATED_B
+        else:                           # open loop (identification): bias plus the excitation
             np.dot(self._c0_phi_inv, self.strains, out=self.q)
             self._target[:] = self._bias
         if self._excitation is not None and self.excitation_enabled:
             self._excite()
         # the bumpless start: voltages faded in from bias
-        r = self.record
         self._steps_since_start += 1
         if self._steps_since_start < self._start_samples:
             r[I_FLAGS] += FLAG_FADING_IN
@@ -250,8 +285,7 @@ class Controller:
         self._take_applied_forces()
         if self._law:
             self.schedule.update(self._signals, self.compensator_state)
-            alloc = self.allocator
-            self.safety.saturation(alloc.scale_a < 1.0 or alloc.scale_b < 1.0)
+            self.safety.saturation(self.allocator.scale_a < 1.0 or self.allocator.scale_b < 1.0)
 
     def _excite(self) -> None:
         """The next excitation row onto the target voltages, within the voltage limits."""
@@ -260,48 +294,6 @@ class Controller:
             self._target += self._excitation[k]
             np.clip(self._target, self._v_min, self._v_max, out=self._target)
             self.excitation_index = k + 1
-
-    def _law_step(self) -> bool:
-        """Steps 1-4 into the target voltages; False when the load left the table (a fault)."""
-        r = self.record
-        schedule = self.schedule
-        schedule.follow(r[I_LOAD])
-        r[I_LOAD_FILTERED] = schedule.filtered_load_n
-        if schedule.out_of_range:
-            r[I_FLAGS] += FLAG_LOAD_OUT_OF_TABLE
-            self.fault(Fault.LOAD_OUT_OF_TABLE_RANGE,
-                       f"filtered load {schedule.filtered_load_n:.1f} N outside the table's "
-                       f"[{self.table.loads_n[0]:g}, {self.table.loads_n[-1]:g}] N")
-            self._ramp()
-            self._take_applied_forces()
-            return False
-        # 1. q = (C0 Phi)^-1 y (eq. 30), for telemetry
-        np.dot(self._c0_phi_inv, self.strains, out=self.q)
-        # 2. integral action with anti-windup
-        np.dot(self._integral_map, self.strains, out=self._dxi)
-        alloc = self.allocator
-        if self._anti_windup and (alloc.scale_a < 1.0 or alloc.scale_b < 1.0):
-            schedule.integral_effect(self._dxi, self._du)       # -Ki dxi: what the increment does
-            u, du = self.u, self._du
-            winds = ((alloc.scale_a < 1.0 and du[0] * u[0] + du[1] * u[1] > 0.0)
-                     or (alloc.scale_b < 1.0 and du[2] * u[2] + du[3] * u[3] > 0.0))
-            if winds:
-                r[I_FLAGS] += FLAG_INTEGRATOR_HELD
-            else:
-                self.xi += self._dxi
-        else:
-            self.xi += self._dxi
-        # 3. u = -(C x_c + D y) - Ki xi at the filtered load
-        schedule.output(self._signals, self.u)
-        # 4. allocation
-        alloc.allocate(self.u, self._target)
-        r[I_SCALE_A] = alloc.scale_a
-        r[I_SCALE_B] = alloc.scale_b
-        if alloc.scale_a < 1.0:
-            r[I_FLAGS] += FLAG_SATURATED_A
-        if alloc.scale_b < 1.0:
-            r[I_FLAGS] += FLAG_SATURATED_B
-        return True
 
     def _take_applied_forces(self) -> None:
         """u_applied = M (V - V_bias): the lateral forces the voltages about to be written give,
