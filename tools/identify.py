@@ -39,11 +39,12 @@ import scipy.signal as sig
 
 from beamctl.config.schema import ConfigError
 from beamctl.gains.table import GainTable
+from beamctl.hal.base import HalError
 from beamctl.models import build_model, critical_load
 from beamctl.models.measured import FrfData, nan_matrix
 from beamctl.models.plant import LoadRamp
 from beamctl.rt.allocation import geometry as controller_geometry
-from beamctl.rt.controller import FLAG_NO_NEW_SAMPLE, I_FLAGS, I_LOAD, Controller
+from beamctl.rt.controller import I_LOAD, Controller
 from beamctl.rt.loop import ControlLoop
 from beamctl.rt.safety import Fault
 from beamctl.tools.excitation import (
@@ -54,7 +55,14 @@ from beamctl.tools.excitation import (
     periodic_signal,
     voltage_directions,
 )
-from beamctl.tools.service import ServiceConfig, build_hal, build_plant, plant_geometry, plant_settings
+from beamctl.tools.service import (
+    ServiceConfig,
+    build_hal,
+    build_plant,
+    check_voltage_range,
+    plant_geometry,
+    plant_settings,
+)
 from beamctl.tools.signals import Interrupted
 
 # open loop only below this fraction of the controller model's critical load: the beam at bias
@@ -178,14 +186,19 @@ def record(cfg: ServiceConfig, table: GainTable, s: IdentifySettings, progress=N
         hal = SimBackend(sim_plant, plant_geometry(cfg), pace=cfg.hal.sim["pace"])
     else:
         sim_plant = None
-        hal = build_hal(cfg, table)
+        try:
+            hal = build_hal(cfg, table)
+        except HalError as exc:             # the hal section describes a bus or DBC it cannot have
+            raise ConfigError(f"hal.{cfg.hal.backend}", cfg.hal.can["channel"], f"a bus that can be opened "
+                              f"({exc})", cfg.source) from None
+        check_voltage_range(cfg, hal)
     controller = Controller(table, replace(cfg.controller, pacing="sample"), excitation=excitation,
                             law=s.closed_loop)
     controller.excitation_enabled = False           # until the load has settled at s.load_n
     strains = np.zeros((n, 4))
     forces = np.zeros((n, 4))
     loads = np.zeros(n)
-    state = {"stop": "", "missing": 0, "start": None, "cycles": 0, "settled": 0, "recorded": 0}
+    state = {"stop": "", "start": None, "cycles": 0, "settled": 0, "recorded": 0}
     tolerance = max(LOAD_TOLERANCE_N, LOAD_TOLERANCE_FRACTION * s.load_n)
     settle, wait = round(SETTLE_S * rate), round(LOAD_WAIT_S * rate)
     every = max(1, n // 200)
@@ -205,8 +218,6 @@ def record(cfg: ServiceConfig, table: GainTable, s: IdentifySettings, progress=N
         if k <= state["recorded"]:
             if k >= n:
                 hold_until_safe(loop, c)
-            elif int(c.record[I_FLAGS]) & FLAG_NO_NEW_SAMPLE:
-                state["missing"] += 1
             return
         state["recorded"] = k
         i = k - 1
@@ -255,6 +266,8 @@ def record(cfg: ServiceConfig, table: GainTable, s: IdentifySettings, progress=N
     loop = ControlLoop(controller, hal, stop_on_fault=True, on_cycle=on_cycle)
     try:
         result = loop.run(acquire_rt=False)
+    except HalError as exc:                 # the HAL would not open: nothing was excited
+        raise IdentificationError(f"the {cfg.hal.backend} backend failed: {exc}") from None
     finally:
         hal.close()
     if result.signal_received:
@@ -267,8 +280,10 @@ def record(cfg: ServiceConfig, table: GainTable, s: IdentifySettings, progress=N
     if controller.excitation_index < n:
         raise IdentificationError(f"the run ended after {controller.excitation_index} of {n} excitation "
                                   f"samples ({result.reason or result.state})")
+    # samples the hardware sent that never reached the law (a gap in the record's time base)
+    missed = int(result.hal.get("samples_missed", 0))
     return Recording(inputs=inputs, period=period, periods=periods, strains=strains, forces=forces,
-                     reference=reference, loads_n=loads, missing_samples=state["missing"])
+                     reference=reference, loads_n=loads, missing_samples=missed)
 
 
 def estimate(rec: Recording, sample_rate_hz: float, band_hz: tuple[float, float],

@@ -95,7 +95,8 @@ def run(args: argparse.Namespace) -> int:
     for plane, freqs in peaks.items():
         print(f"resonances ({plane}): {', '.join(f'{f:.1f} Hz' for f in freqs) or 'none found'}")
     if report["missing_samples"]:
-        print(f"warning: {report['missing_samples']} samples did not arrive during the excitation")
+        print(f"warning: {report['missing_samples']} samples the DAQ sent never reached the controller "
+              f"during the run: the record has gaps, repeat the identification")
     print(f"{report['rig_s']:.1f} s of rig time in {report['wall_s']:.1f} s")
     print(f"wrote {', '.join(report['files'])}")
     return 0

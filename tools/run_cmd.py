@@ -18,7 +18,6 @@ import sys
 import threading
 from pathlib import Path
 
-from beamctl.config.schema import ConfigError
 from beamctl.hal.base import HalError
 from beamctl.rt import realtime
 from beamctl.rt.controller import Controller
@@ -27,7 +26,7 @@ from beamctl.rt.telemetry import TelemetryWriter
 from beamctl.tools.argtypes import seconds
 from beamctl.tools.outputs import check_file, check_new_file
 from beamctl.tools.sdnotify import Notifier
-from beamctl.tools.service import build_hal, load_gain_table, load_service_config
+from beamctl.tools.service import build_hal, check_voltage_range, load_gain_table, load_service_config
 
 
 def add_parser(sub) -> None:
@@ -41,21 +40,6 @@ def add_parser(sub) -> None:
                    help="refuse to run without SCHED_FIFO, affinity and locked memory")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
     p.set_defaults(run=run)
-
-
-def _check_voltage_range(cfg, hal) -> None:
-    """The controller's voltage range must be one the DBC can carry."""
-    contract = getattr(hal, "contract", None)
-    if contract is None:
-        return
-    signal_range = contract.voltages.signals[0]
-    a = cfg.controller.actuators
-    for key, value in (("min_voltage_v", a.min_voltage_v), ("max_voltage_v", a.max_voltage_v),
-                       ("bias_voltage_v", a.bias_voltage)):
-        if not signal_range.minimum <= value <= signal_range.maximum:
-            raise ConfigError(f"controller.actuators.{key}", value,
-                              f"a voltage the DBC's {contract.voltages.name} carries "
-                              f"([{signal_range.minimum:g}, {signal_range.maximum:g}] V)", cfg.source)
 
 
 def _output_paths(args: argparse.Namespace, cfg) -> Path:
@@ -80,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     except HalError as exc:             # the hal section describes a bus or DBC it cannot have
         print(f"beamctl run: error: {cfg.source}: hal.{cfg.hal.backend}: {exc}", file=sys.stderr)
         return 2
-    _check_voltage_range(cfg, hal)
+    check_voltage_range(cfg, hal)
     controller = Controller(table, cfg.controller)
     duration_s = cfg.duration_s if args.duration is None else args.duration
     max_cycles = int(duration_s * table.design.sample_rate_hz) if duration_s else None

@@ -189,3 +189,19 @@ def build_hal(cfg: ServiceConfig, table: GainTable, plant: Plant | None = None) 
                       bitrate_bit_s=c["bitrate_bit_s"], fd=c["fd"],
                       data_bitrate_bit_s=c["data_bitrate_bit_s"], dbc=c["dbc"] or None,
                       record=c["record"] or None, rate_tolerance=c["rate_tolerance"])
+
+
+def check_voltage_range(cfg: ServiceConfig, hal: HalBase) -> None:
+    """The controller's voltage range must be one the HAL's DBC can carry (backends without a
+    DBC: any)."""
+    contract = getattr(hal, "contract", None)
+    if contract is None:
+        return
+    signal_range = contract.voltages.signals[0]
+    a = cfg.controller.actuators
+    for key, value in (("min_voltage_v", a.min_voltage_v), ("max_voltage_v", a.max_voltage_v),
+                       ("bias_voltage_v", a.bias_voltage)):
+        if not signal_range.minimum <= value <= signal_range.maximum:
+            raise ConfigError(f"controller.actuators.{key}", value,
+                              f"a voltage the DBC's {contract.voltages.name} carries "
+                              f"([{signal_range.minimum:g}, {signal_range.maximum:g}] V)", cfg.source)

@@ -11,7 +11,7 @@ from beamctl.config.schema import ConfigError
 from beamctl.hal.sim import SimBackend
 from beamctl.models import build_model, load_parameters, parameters_from_dict
 from beamctl.models.fit import FitError, FitSettings, fit
-from beamctl.models.measured import PLANE_PAIRS
+from beamctl.models.measured import PLANE_PAIRS, resonances
 from beamctl.models.plant import Plant, plant_config
 from beamctl.tools.identify import IdentificationError, IdentifySettings, identify, record
 from beamctl.tools.service import load_gain_table, service_config
@@ -182,3 +182,33 @@ def test_closed_loop_identification_above_the_critical_load_gives_the_open_loop_
         # unbiased, although the controller feeds the measurement noise back to the forces
         for part, name in ((error.real, "log magnitude"), (error.imag, "phase (rad)")):
             assert abs(np.median(part)) < 0.01, f"({i}, {j}): {name} biased by {np.median(part):.3g}"
+
+
+def test_over_can_the_same_identification_finds_the_same_beam(tmp_path):
+    """Nothing but the HAL changes: the DAQ emulator (the paper's beam at 1500 N, 2500 Hz) over
+    python-can's virtual bus, its voltages quantised to the DBC's 0.6 V."""
+    import can
+
+    from beamctl.gains.defaults import paper_table_path
+    from beamctl.hal.emulator import CanPlantEmulator
+    from beamctl.models import eigenfrequencies
+    from tests.hal.rigs import GEOMETRY, IN_PROCESS_SAFETY, MODEL, make_plant
+
+    channel = "identify-can"
+    bus = can.Bus(interface="virtual", channel=channel)
+    emulator = CanPlantEmulator(bus, make_plant(), GEOMETRY, pace="lockstep").start()
+    cfg = service_config({"gains": {"table": str(paper_table_path())},
+                          "hal": {"backend": "can", "can": {"interface": "virtual", "channel": channel,
+                                                            "rate_tolerance": 0.0}},
+                          "controller": {"safety": IN_PROCESS_SAFETY}}, "can rig")
+    try:
+        data, report = identify(cfg, load_gain_table(cfg), IdentifySettings(
+            load_n=1500.0, averages=2, resolution_hz=2.0, band_hz=(20.0, 800.0), supports="A"))
+    finally:
+        emulator.stop()
+        bus.shutdown()
+    assert report["missing_samples"] == 0
+    expected = eigenfrequencies(MODEL, 1500.0, 2)
+    found = resonances(data)["y"][:2]
+    # the emulated DAQ samples at 2500 Hz; 2 Hz lines and a parabola place a peak within 1 Hz
+    assert np.all(np.abs(np.array(found) - expected) < 1.0), f"found {found}, the beam has {expected}"
