@@ -12,6 +12,7 @@ from beamctl.tools.cli import main
 from beamctl.tools.frf_files import read_frf
 from beamctl.tools.service import load_model_file, service_config
 
+from .processes import beamctl, interrupt_when
 from .test_identify import RIG
 
 # a short identification: 2 averaged periods of 0.5 s per input
@@ -106,3 +107,12 @@ def test_bad_input_is_refused_in_one_line_naming_it(identified, tmp_path, capsys
     assert main(args) == 2
     err = capsys.readouterr().err
     assert named in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_ctrl_c_during_identify_exits_130_and_writes_no_result(identified, tmp_path):
+    process = beamctl("identify", "--config", str(identified / "rig.yaml"), "--load", "2000",
+                      "--out", str(tmp_path / "cut"), cwd=tmp_path)
+    status, err = interrupt_when(process, b"force yA")
+    assert status == 130, err
+    assert "interrupted" in err and "Traceback" not in err, err
+    assert not list(tmp_path.glob("cut*")), "a cut-short identification is no measurement"
