@@ -20,7 +20,7 @@ Measured eigenfrequencies add (ln f_model - ln f_measured) / sigma.
 Free parameters: any numeric key of the model configuration (``beam.youngs_modulus``,
 ``damping.ratios``, ...), a list key with all its elements, and ``actuators.force_constant_n_per_v``.
 Each is fitted as ln(p / p_start) within ``BOUND_FACTOR`` of the start (damping ratios below
-0.5); gauge positions as an offset within +- ``GAUGE_BOUND_M``. Nonlinear least squares
+0.9); gauge positions as an offset within +- ``GAUGE_BOUND_M``. Nonlinear least squares
 (scipy.optimize.least_squares, trust region reflective) from the start model; the standard
 errors come from the Jacobian at the solution, cov = s^2 (J^T J)^-1 with s^2 the residual
 variance. A fit that did not converge, that ends on a bound, or whose data do not determine a
@@ -61,7 +61,7 @@ NOT_FITTED = ("fe.nodes", "modal.reference_load_fraction", "damping.identificati
               "sensors.max_condition_number")
 BOUND_FACTOR = 3.0
 GAUGE_BOUND_M = 0.01
-MAX_DAMPING_RATIO = 0.5
+MAX_DAMPING_RATIO = 0.9
 MAX_COHERENCE = 0.999
 CORRELATION_REPORTED = 0.9      # pairs correlated beyond this are reported as poorly separable
 _FAILED_RESIDUAL = 1e3          # per residual, where the parameters give no valid model
@@ -200,7 +200,7 @@ class Problem:
                 else:
                     top = BOUND_FACTOR if k != "damping.ratios" else min(BOUND_FACTOR, MAX_DAMPING_RATIO / x0)
                     low.append(-math.log(BOUND_FACTOR))
-                    high.append(math.log(top))
+                    high.append(max(math.log(top), 1e-3))   # a start at the cap may still rise a little
         self.bounds = (np.array(low), np.array(high))
         self.selection = [self._select(d, settings) for d in self.data]
         if sum(len(f) for f, _ in self.selection) == 0 and not self.eigen:
@@ -273,7 +273,14 @@ class Problem:
 
     @property
     def size(self) -> int:
+        """Length of the residual vector (points left out enter as zeros)."""
         n = sum(2 * len(used) * len(entries) for used, entries in self.selection if len(used))
+        return n + len(self.eigen)
+
+    @property
+    def points(self) -> int:
+        """The residuals that carry data: the degrees of freedom before the parameters."""
+        n = sum(2 * int(ok.sum()) for _, entries in self.selection for _, _, ok, _ in entries)
         return n + len(self.eigen)
 
 
@@ -306,7 +313,7 @@ def fit(start: ModelParameters, data: Sequence[FrfData], settings: FitSettings =
                        f"the start, gauges +-{GAUGE_BOUND_M * 1e3:g} mm): the data do not place it within "
                        f"the bounds; nothing written. Start from a closer model or leave it out of --params")
     jac = result.jac
-    m, p = jac.shape
+    m, p = problem.points, jac.shape[1]
     jtj = jac.T @ jac
     column = np.sqrt(np.diag(jtj))
     weak = [n for n, c in zip(problem.names, column, strict=True) if not c > 1e-9 * max(column.max(), 1e-300)]

@@ -452,9 +452,11 @@ class Plant:
         samples before it, as a recorded run pairs them."""
         freqs = np.asarray(freqs_hz, dtype=float)
         zoh = self.discretise(axial_load)
-        _, _, c, _ = self.augmented(axial_load)
+        _, _, c, d = self.augmented(axial_load)
         z = np.exp(2j * np.pi * freqs * self.sample_period)
         shift = z[:, None, None] ** (-zoh.whole)
+        # the feedthrough acts with the input held before the sampling instant (``measure``)
+        direct = d[None, :, :N_FORCES] * (shift / z[:, None, None]) if np.any(d[:, :N_FORCES]) else 0.0
         lam, vec = np.linalg.eig(zoh.ad)
         if np.linalg.cond(vec) < _MAX_EIGENVECTOR_CONDITION:
             # diagonalised once: each frequency costs a scaling of C V and V^-1 B
@@ -463,7 +465,7 @@ class Plant:
             resolvent = 1.0 / (z[:, None] - lam[None, :])
             g = (np.einsum("in,fn,nj->fij", left, resolvent, now)
                  + np.einsum("in,fn,nj->fij", left, resolvent, before) / z[:, None, None])
-            return g * shift
+            return g * shift + direct
         eye = np.eye(zoh.ad.shape[0])          # near-defective: one solve per frequency
         b = zoh.b_now[None] + zoh.b_before[None] / z[:, None, None]
-        return (c @ np.linalg.solve(z[:, None, None] * eye[None] - zoh.ad[None], b)) * shift
+        return (c @ np.linalg.solve(z[:, None, None] * eye[None] - zoh.ad[None], b)) * shift + direct

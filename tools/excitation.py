@@ -28,6 +28,7 @@ SIGNALS = ("multisine", "chirp", "prbs")
 SUPPORT_INPUTS = {"A": (0, 1), "B": (2, 3), "AB": (0, 1, 2, 3)}
 PRBS_BANDWIDTH = 2.5        # the bit rate over the band's top frequency
 MAX_PRBS_BITS = 24
+MIN_RESOLUTION_HZ = 0.01            # a period of at most 100 s
 
 
 @dataclass(frozen=True)
@@ -58,17 +59,19 @@ def periodic_signal(kind: str, sample_rate_hz: float, band_hz: tuple[float, floa
         raise ConfigError("--band", f"{low:g}:{high:g}",
                           f"0 <= LOW < HIGH <= the Nyquist frequency {nyquist:g} Hz (the rig samples at "
                           f"{sample_rate_hz:g} Hz)")
-    period = int(round(sample_rate_hz / resolution_hz))
-    if period < 16 or resolution_hz > (high - low) / 4:
+    if not (math.isfinite(resolution_hz) and resolution_hz >= MIN_RESOLUTION_HZ
+            and resolution_hz <= (high - low) / 4):
         raise ConfigError("--resolution", resolution_hz,
-                          f"a frequency step that puts at least 4 lines into the band {low:g}..{high:g} Hz")
+                          f"a frequency step from {MIN_RESOLUTION_HZ:g} Hz (a period of "
+                          f"{1 / MIN_RESOLUTION_HZ:g} s) that puts at least 4 lines into the band "
+                          f"{low:g}..{high:g} Hz")
+    period = int(round(sample_rate_hz / resolution_hz))
     rng = np.random.default_rng(seed)
     if kind == "multisine":
-        lines = np.arange(max(1, math.ceil(low / resolution_hz)), math.floor(high / resolution_hz) + 1)
-        lines = lines[lines < period / 2]
-        n = np.arange(period)
-        phases = rng.uniform(0.0, 2 * np.pi, len(lines))
-        values = np.cos(2 * np.pi * np.outer(n, lines) / period + phases).sum(axis=1)
+        spectrum = np.zeros(period // 2 + 1, dtype=complex)
+        lines = excited_lines(period, sample_rate_hz, band_hz)
+        spectrum[lines] = np.exp(1j * rng.uniform(0.0, 2 * np.pi, len(lines)))
+        values = np.fft.irfft(spectrum, n=period)
     elif kind == "chirp":
         t = np.arange(period) / sample_rate_hz
         values = sig.chirp(t, f0=low, t1=period / sample_rate_hz, f1=high, method="linear")
@@ -84,6 +87,14 @@ def periodic_signal(kind: str, sample_rate_hz: float, band_hz: tuple[float, floa
         raise ConfigError("--signal", kind, f"one of {', '.join(SIGNALS)}")
     values = values - values.mean()
     return Excitation(kind=kind, values=values / np.max(np.abs(values)), sample_rate_hz=sample_rate_hz)
+
+
+def excited_lines(period: int, sample_rate_hz: float, band_hz: tuple[float, float]) -> np.ndarray:
+    """The DFT lines k (k / (period T) Hz) of a period inside the band, 0 Hz and the Nyquist
+    line left out."""
+    k = np.arange(1, (period + 1) // 2)
+    f = k * sample_rate_hz / period
+    return k[(f >= band_hz[0]) & (f <= band_hz[1])]
 
 
 def voltage_directions(geometry: StackGeometry) -> np.ndarray:

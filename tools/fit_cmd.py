@@ -137,7 +137,7 @@ def _fmt(v) -> str:
 
 def load_fitted(path: str) -> tuple[ModelParameters, float | None]:
     """A fitted model file: its parameters and the fitted force constant (None if absent)."""
-    params = load_model_file(path)
+    params = load_model_file(path, "--fitted")
     data = read_yaml(path)
     k = ((data.get("controller") or {}).get("actuators") or {}).get("force_constant_n_per_v")
     return params, (float(k) if k is not None else None)
@@ -166,6 +166,8 @@ def run(args: argparse.Namespace) -> int:
     if settings.min_coherence >= 1:
         raise ConfigError("--min-coherence", settings.min_coherence, "a coherence below 1")
     out = check_file(args.out, "--out")
+    if args.plot and Path(args.plot).resolve() == out.resolve():
+        raise ConfigError("--plot", args.plot, "a folder for the figure, not the --out file")
     plot_dir = check_dir(args.plot, "--plot") if args.plot else None
     data = [read_frf(f) for f in args.frf]
     eigen = read_eigenfrequencies(args.eigenfrequencies) if args.eigenfrequencies else []

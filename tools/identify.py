@@ -40,7 +40,7 @@ import scipy.signal as sig
 from beamctl.config.schema import ConfigError
 from beamctl.gains.table import GainTable
 from beamctl.hal.base import HalError
-from beamctl.models import build_model, critical_load
+from beamctl.models import build_model, critical_load, state_space
 from beamctl.models.measured import FrfData, nan_matrix
 from beamctl.models.plant import LoadRamp
 from beamctl.rt.allocation import geometry as controller_geometry
@@ -50,6 +50,7 @@ from beamctl.rt.safety import Fault
 from beamctl.tools.excitation import (
     SIGNALS,
     SUPPORT_INPUTS,
+    excited_lines,
     force_gains,
     input_names,
     periodic_signal,
@@ -74,6 +75,9 @@ LOAD_TOLERANCE_N = 25.0
 LOAD_TOLERANCE_FRACTION = 0.02
 SETTLE_S = 0.5
 LOAD_WAIT_S = 120.0
+MIN_AVERAGES = 3
+MAX_RUN_S = 3600.0                  # rig time of one identification
+TRANSIENT_TIME_CONSTANTS = 5.0
 # the simulated rig, closed loop: the load rises under control from this fraction of the model's
 # critical load to the requested one at this rate (as an operator would bring it there)
 CLOSED_LOOP_START_FRACTION = 0.8
@@ -111,12 +115,12 @@ class Recording:
 
     inputs: tuple[int, ...]
     period: int
-    periods: int                        # per input, the transient one included
+    periods: int                        # per input, the transient ones included
+    transient: int                      # periods dropped at the start of each input
     strains: np.ndarray                 # [n x 4]
     forces: np.ndarray                  # [n x 4]
     reference: np.ndarray               # [n] the excitation's force along its input
     loads_n: np.ndarray                 # [n]
-    missing_samples: int = 0
 
 
 def check_settings(s: IdentifySettings, cfg: ServiceConfig, sample_rate_hz: float) -> None:
@@ -127,8 +131,10 @@ def check_settings(s: IdentifySettings, cfg: ServiceConfig, sample_rate_hz: floa
         raise ConfigError("--supports", s.supports, "A, B or AB")
     if not (math.isfinite(s.load_n) and s.load_n >= 0):
         raise ConfigError("--load", s.load_n, "a load in N, >= 0")
-    if not s.averages >= 1:
-        raise ConfigError("--averages", s.averages, "at least 1 period to average")
+    if not s.averages >= MIN_AVERAGES:
+        raise ConfigError("--averages", s.averages,
+                          f"at least {MIN_AVERAGES} periods to average (with fewer, the coherence of pure "
+                          f"noise is 1 / averages >= 0.5, and tells measured from noise no more)")
     a = cfg.controller.actuators
     room = min(a.bias_voltage - a.min_voltage_v, a.max_voltage_v - a.bias_voltage)
     if not 0 < s.amplitude_v <= room:
@@ -149,6 +155,23 @@ def check_settings(s: IdentifySettings, cfg: ServiceConfig, sample_rate_hz: floa
                               f"{critical:.0f} N for an open-loop identification (the stacks at bias "
                               f"do not hold the beam there); use --closed-loop above it")
     periodic_signal(s.signal, sample_rate_hz, s.band_hz, s.resolution_hz, s.seed)   # its own checks
+    inputs = len(SUPPORT_INPUTS[s.supports])
+    duration = inputs * (s.averages + transient_periods(cfg, s, 1.0 / s.resolution_hz)) / s.resolution_hz
+    if duration > MAX_RUN_S:
+        raise ConfigError("--averages", s.averages,
+                          f"fewer periods or a coarser --resolution: {inputs} inputs x the periods of "
+                          f"1 / {s.resolution_hz:g} Hz take {duration:.0f} s of rig time, more than "
+                          f"{MAX_RUN_S:g} s")
+
+
+def transient_periods(cfg: ServiceConfig, s: IdentifySettings, period_s: float) -> int:
+    """Periods to drop before averaging: at least one, and at least ``TRANSIENT_TIME_CONSTANTS``
+    decay times of the model's slowest stable mode at the load (a lightly damped beam near its
+    critical load rings for seconds)."""
+    poles = np.linalg.eigvals(state_space(build_model(cfg.model), s.load_n)[0])
+    decay = -poles.real[poles.real < 0]
+    slowest_s = 1.0 / decay.min() if len(decay) else 0.0
+    return max(1, math.ceil(TRANSIENT_TIME_CONSTANTS * slowest_s / period_s))
 
 
 def excitation_plan(s: IdentifySettings, cfg: ServiceConfig, sample_rate_hz: float):
@@ -157,7 +180,8 @@ def excitation_plan(s: IdentifySettings, cfg: ServiceConfig, sample_rate_hz: flo
     directions = voltage_directions(g)
     gains = force_gains(g)
     inputs = SUPPORT_INPUTS[s.supports]
-    periods = s.averages + 1
+    transient = transient_periods(cfg, s, 1.0 / s.resolution_hz)
+    periods = s.averages + transient
     rows, reference = [], []
     for k, j in enumerate(inputs):
         e = periodic_signal(s.signal, sample_rate_hz, s.band_hz, s.resolution_hz, s.seed + 7919 * k)
@@ -165,7 +189,7 @@ def excitation_plan(s: IdentifySettings, cfg: ServiceConfig, sample_rate_hz: flo
         rows.append(np.outer(values, directions[j]))
         reference.append(values * gains[j])
     period = len(e.values)
-    return np.vstack(rows), np.concatenate(reference), inputs, period, periods
+    return np.vstack(rows), np.concatenate(reference), inputs, period, periods, transient
 
 
 def record(cfg: ServiceConfig, table: GainTable, s: IdentifySettings, progress=None) -> Recording:
@@ -173,7 +197,7 @@ def record(cfg: ServiceConfig, table: GainTable, s: IdentifySettings, progress=N
     Raises IdentificationError (the stacks at bias) or Interrupted (Ctrl-C, SIGTERM)."""
     rate = table.design.sample_rate_hz
     check_settings(s, cfg, rate)
-    excitation, reference, inputs, period, periods = excitation_plan(s, cfg, rate)
+    excitation, reference, inputs, period, periods, transient = excitation_plan(s, cfg, rate)
     n = len(excitation)
     if cfg.hal.backend == "sim":
         from beamctl.hal.sim import SimBackend
@@ -198,7 +222,8 @@ def record(cfg: ServiceConfig, table: GainTable, s: IdentifySettings, progress=N
     strains = np.zeros((n, 4))
     forces = np.zeros((n, 4))
     loads = np.zeros(n)
-    state = {"stop": "", "start": None, "cycles": 0, "settled": 0, "recorded": 0}
+    state = {"stop": "", "start": None, "cycles": 0, "settled": 0, "recorded": 0, "holding": False,
+             "missed_before": 0}
     tolerance = max(LOAD_TOLERANCE_N, LOAD_TOLERANCE_FRACTION * s.load_n)
     settle, wait = round(SETTLE_S * rate), round(LOAD_WAIT_S * rate)
     every = max(1, n // 200)
@@ -210,14 +235,15 @@ def record(cfg: ServiceConfig, table: GainTable, s: IdentifySettings, progress=N
     def on_cycle(loop: ControlLoop) -> None:
         c = loop.controller
         k = c.excitation_index
+        if state["holding"]:
+            hold_until_safe(loop, c)
+            return
         if state["stop"]:
             return
         if not c.excitation_enabled:
             wait_for_load(loop, c)
             return
         if k <= state["recorded"]:
-            if k >= n:
-                hold_until_safe(loop, c)
             return
         state["recorded"] = k
         i = k - 1
@@ -226,26 +252,40 @@ def record(cfg: ServiceConfig, table: GainTable, s: IdentifySettings, progress=N
         loads[i] = c.record[I_LOAD]
         deviation = float(np.max(np.abs(strains[i] - state["start"])))
         if deviation > s.max_strain:
-            state["stop"] = (f"a strain moved {deviation:.3g} from its value at the start, beyond "
-                             f"--max-strain {s.max_strain:g}: the excitation was stopped and the "
-                             f"stacks ramped to bias (lower --amplitude, or check the rig)")
-            loop.request_stop("strain amplitude")
+            end(loop, c, f"a strain moved {deviation:.3g} from its value at the start, beyond "
+                         f"--max-strain {s.max_strain:g}: the excitation was stopped (lower --amplitude, "
+                         f"or check the rig)")
             return
         if progress is not None and (k % every == 0 or k >= n):
             j = inputs[min(i // (periods * period), len(inputs) - 1)]
             progress(k, n, f"force {input_names((j,))[0]}")
         if k >= n:
-            if sim_plant is not None and s.load_n > safe_load:     # the simulated operator lowers it
-                sim_plant.follow_load(LoadRamp(s.load_n, CLOSED_LOOP_START_FRACTION * safe_load,
-                                               SIM_LOAD_RATE_N_PER_S, hold=sim_plant.time))
-            hold_until_safe(loop, c)
+            lost = _samples_missed(loop) - state["missed_before"]
+            end(loop, c, f"{lost} samples the DAQ sent never reached the controller during the excitation: "
+                         f"the record has gaps; repeat the identification" if lost else "")
+
+    def end(loop: ControlLoop, c: Controller, reason: str) -> None:
+        """The excitation is over (``reason``: why, if it is no measurement). Open loop the stacks
+        ramp to bias now; closed loop the law holds the beam until the load is back below the
+        critical load (the simulated rig lowers it; on the rig the operator does)."""
+        state["stop"] = reason
+        c.excitation_enabled = False
+        if not s.closed_loop:
+            loop.request_stop(reason or "excitation done")
+            return
+        state["holding"] = True
+        if sim_plant is not None and sim_plant.axial_load > safe_load:
+            sim_plant.follow_load(LoadRamp(sim_plant.axial_load, CLOSED_LOOP_START_FRACTION * safe_load,
+                                           SIM_LOAD_RATE_N_PER_S, hold=sim_plant.time))
+        hold_until_safe(loop, c)
 
     def hold_until_safe(loop: ControlLoop, c: Controller) -> None:
         load = c.record[I_LOAD]
         if load < safe_load:
-            loop.request_stop("excitation done")
+            state["holding"] = False
+            loop.request_stop(state["stop"] or "excitation done")
         elif progress is not None and state["cycles"] % every == 0:
-            progress(n, n, f"lower the load below {safe_load:.0f} N")
+            progress(state["recorded"], n, f"lower the load below {safe_load:.0f} N")
         state["cycles"] += 1
 
     def wait_for_load(loop: ControlLoop, c: Controller) -> None:
@@ -255,11 +295,11 @@ def record(cfg: ServiceConfig, table: GainTable, s: IdentifySettings, progress=N
         state["settled"] = state["settled"] + 1 if abs(load - s.load_n) <= tolerance else 0
         if state["settled"] >= settle:
             state["start"] = c.strains.copy()
+            state["missed_before"] = _samples_missed(loop)
             c.excitation_enabled = True
         elif state["cycles"] > wait:
-            state["stop"] = (f"the load cell reads {load:.0f} N, not the requested {s.load_n:g} N (within "
-                             f"{tolerance:.0f} N), after {LOAD_WAIT_S:g} s: set the rig's load first")
-            loop.request_stop("load")
+            end(loop, c, f"the load cell reads {load:.0f} N, not the requested {s.load_n:g} N (within "
+                         f"{tolerance:.0f} N), after {LOAD_WAIT_S:g} s: set the rig's load first")
         elif progress is not None and state["cycles"] % every == 0:
             progress(0, n, f"load {load:.0f} N")
 
@@ -276,14 +316,18 @@ def record(cfg: ServiceConfig, table: GainTable, s: IdentifySettings, progress=N
         raise IdentificationError(f"the controller faulted: {controller.supervisor.reason()} "
                                   f"(the stacks ramped to bias; nothing written)")
     if state["stop"]:
-        raise IdentificationError(state["stop"])
+        raise IdentificationError(f"{state['stop']}; the stacks ramped to bias, nothing written")
     if controller.excitation_index < n:
         raise IdentificationError(f"the run ended after {controller.excitation_index} of {n} excitation "
                                   f"samples ({result.reason or result.state})")
-    # samples the hardware sent that never reached the law (a gap in the record's time base)
-    missed = int(result.hal.get("samples_missed", 0))
-    return Recording(inputs=inputs, period=period, periods=periods, strains=strains, forces=forces,
-                     reference=reference, loads_n=loads, missing_samples=missed)
+    return Recording(inputs=inputs, period=period, periods=periods, transient=transient, strains=strains,
+                     forces=forces, reference=reference, loads_n=loads)
+
+
+def _samples_missed(loop: ControlLoop) -> int:
+    """Samples the hardware sent that never reached the controller so far (backends that count
+    them: CAN's sequence numbers)."""
+    return int(loop.hal.status().get("samples_missed", 0))
 
 
 def estimate(rec: Recording, sample_rate_hz: float, band_hz: tuple[float, float],
@@ -293,14 +337,14 @@ def estimate(rec: Recording, sample_rate_hz: float, band_hz: tuple[float, float]
     p = rec.period
     per_input = rec.periods * p
     freqs = np.fft.rfftfreq(p, 1.0 / sample_rate_hz)
-    keep = (freqs >= max(band_hz[0], freqs[1])) & (freqs <= band_hz[1])
-    nf = int(keep.sum())
+    keep = excited_lines(p, sample_rate_hz, band_hz)
+    nf = len(keep)
     s_yr = np.zeros((nf, 4, 4), dtype=complex)   # [f, output, input j]
     s_ur = np.zeros((nf, 4, 4), dtype=complex)   # [f, force, input j]
     coherence = nan_matrix(nf)[1]
     kwargs = {"fs": sample_rate_hz, "window": "boxcar", "nperseg": p, "noverlap": 0, "detrend": False}
     for k, j in enumerate(rec.inputs):
-        rows = slice(k * per_input + p, (k + 1) * per_input)     # the transient period dropped
+        rows = slice(k * per_input + rec.transient * p, (k + 1) * per_input)   # the transient dropped
         r = rec.forces[rows, j] if not closed_loop else rec.reference[rows]
         _, s_rr = sig.welch(r, **kwargs)
         for i in range(4):
@@ -335,11 +379,11 @@ def identify(cfg: ServiceConfig, table: GainTable, s: IdentifySettings,
                 "gain_table": str(cfg.table_path), "inputs": input_names(rec.inputs),
                 "period_samples": rec.period, "resolution_hz": rate / rec.period,
                 "bias_voltage_v": a.bias_voltage, "orientation_deg": list(a.orientation_deg),
-                "missing_samples": rec.missing_samples}
+                "transient_periods": rec.transient}
     data = FrfData(frequencies_hz=freqs, frf=frf, coherence=coherence, load_n=float(np.mean(rec.loads_n)),
                    sample_rate_hz=rate, force_constant_n_per_v=a.force_constant, io=io.to_dict(),
                    settings=settings)
     report = {"wall_s": time.perf_counter() - start, "rig_s": len(rec.loads_n) / rate,
-              "samples": len(rec.loads_n), "missing_samples": rec.missing_samples,
+              "samples": len(rec.loads_n), "transient_periods": rec.transient,
               "mean_load_n": data.load_n}
     return data, report

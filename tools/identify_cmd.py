@@ -40,7 +40,8 @@ def add_parser(sub) -> None:
     p.add_argument("--resolution", type=argtypes.positive, default=1.0, metavar="HZ",
                    help="frequency step in Hz; one period of the signal lasts 1/HZ s (default 1)")
     p.add_argument("--averages", type=argtypes.number(low=1, integer=True), default=8, metavar="N",
-                   help="periods averaged per input, after one transient period (default 8)")
+                   help="periods averaged per input, at least 3, after the transient ones (at least one, and "
+                        "5 decay times of the model's slowest mode at the load) (default 8)")
     p.add_argument("--supports", choices=tuple(SUPPORT_INPUTS), default="AB",
                    help="excite the stacks of support A, B or both (default AB)")
     p.add_argument("--closed-loop", action="store_true",
@@ -94,9 +95,6 @@ def run(args: argparse.Namespace) -> int:
           f"forces {', '.join(report['inputs'])}")
     for plane, freqs in peaks.items():
         print(f"resonances ({plane}): {', '.join(f'{f:.1f} Hz' for f in freqs) or 'none found'}")
-    if report["missing_samples"]:
-        print(f"warning: {report['missing_samples']} samples the DAQ sent never reached the controller "
-              f"during the run: the record has gaps, repeat the identification")
     print(f"{report['rig_s']:.1f} s of rig time in {report['wall_s']:.1f} s")
     print(f"wrote {', '.join(report['files'])}")
     return 0

@@ -109,12 +109,12 @@ def model_file_overrides(path: str | Path, what: str = "--config") -> dict:
     return data or {}
 
 
-def load_model_file(path: str | Path | None) -> ModelParameters:
-    """Model parameters over the paper's Table 1 from either kind of file (``model_file_overrides``);
-    None: the paper's defaults."""
+def load_model_file(path: str | Path | None, what: str = "--config") -> ModelParameters:
+    """Model parameters over the paper's Table 1 from either kind of file (``model_file_overrides``;
+    ``what`` names the flag in messages); None: the paper's defaults."""
     if path is None:
         return parameters_from_dict({}, "paper defaults")
-    return parameters_from_dict(model_file_overrides(path), str(path))
+    return parameters_from_dict(model_file_overrides(path, what), str(path))
 
 
 def load_service_config(path: str | Path | None) -> ServiceConfig:

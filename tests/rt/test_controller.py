@@ -324,3 +324,32 @@ def test_a_missing_sample_holds_the_voltages_until_the_stale_input_fault(table):
         assert c.state == State.RUNNING
     c.step(None)
     assert c.supervisor.fault == Fault.STALE_INPUT, c.supervisor.reason()
+
+
+@pytest.mark.parametrize("law", [False, True])
+def test_an_excitation_never_drives_a_stack_beyond_the_voltage_limits(table, law):
+    """Rows that would push every stack to 200 V or -50 V: the voltages stop at 150 V and 0 V,
+    open loop and on top of the law."""
+    config = controller_config({"start_ramp_time_s": 0.0})
+    rows = np.vstack([np.full((5, 6), 125.0), np.full((5, 6), -125.0)])
+    c = Controller(table, config, excitation=rows, law=law)
+    c.arm(_sample())
+    c.start()
+    seen = [c.step(_sample()).copy() for _ in range(12)]
+    np.testing.assert_allclose(seen[2], 150.0)
+    np.testing.assert_allclose(seen[7], 0.0)
+    np.testing.assert_allclose(seen[11], 75.0, atol=1e-6 if not law else 5.0,
+                               err_msg="after the rows, bias (or the law's voltages near it)")
+    assert c.excitation_index == len(rows)
+
+
+def test_an_excitation_waits_while_disabled(table):
+    config = controller_config({"start_ramp_time_s": 0.0})
+    c = Controller(table, config, excitation=np.ones((3, 6)), law=False)
+    c.excitation_enabled = False
+    c.arm(_sample())
+    c.start()
+    np.testing.assert_allclose(c.step(_sample()), 75.0)
+    c.excitation_enabled = True
+    np.testing.assert_allclose(c.step(_sample()), 76.0)
+    assert c.excitation_index == 1

@@ -15,8 +15,8 @@ from beamctl.tools.service import load_model_file, service_config
 from .processes import beamctl, interrupt_when
 from .test_identify import RIG
 
-# a short identification: 2 averaged periods of 0.5 s per input
-SHORT = ("--load", "2000", "--averages", "2", "--resolution", "2")
+# a short identification: 3 averaged periods of 0.5 s per input
+SHORT = ("--load", "2000", "--averages", "3", "--resolution", "2")
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +33,7 @@ def test_identify_writes_npz_and_mat_with_the_load_and_the_settings(identified):
     data = read_frf(identified / "id-2000.npz")
     assert abs(data.load_n - 2000.0) < 5.0, "the mean of the load cell, 2 N of noise"
     assert data.sample_rate_hz == 6000.0 and data.force_constant_n_per_v == 3.0
-    assert data.settings["identify"]["averages"] == 2 and data.settings["inputs"] == ["yA", "zA", "yB", "zB"]
+    assert data.settings["identify"]["averages"] == 3 and data.settings["inputs"] == ["yA", "zA", "yB", "zB"]
     mat = scipy.io.loadmat(identified / "id-2000.mat")
     assert mat["frf"].shape == (len(data.frequencies_hz), 4, 4) and np.iscomplexobj(mat["frf"])
     np.testing.assert_allclose(mat["frf"], data.frf)
@@ -101,6 +101,8 @@ def test_a_fit_that_did_not_converge_writes_nothing_and_exits_1(identified, tmp_
     (["identify", "--load", "2000", "--out", "{tmp}/x.txt"], "--out"),
     (["identify", "--load", "3150", "--out", "{tmp}/x"], "--closed-loop"),
     (["model", "--frf", "{frf}"], "--plot"),
+    (["model", "--frf", "{frf}", "--fitted", "{tmp}/none.yaml", "--plot", "{tmp}/f"], "--fitted"),
+    (["model", "fit", "{frf}", "--out", "{tmp}/m.yaml", "--plot", "{tmp}/m.yaml"], "--plot"),
 ])
 def test_bad_input_is_refused_in_one_line_naming_it(identified, tmp_path, capsys, argv, named):
     args = [a.format(frf=identified / "id-2000.npz", tmp=tmp_path) for a in argv]
