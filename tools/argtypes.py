@@ -27,3 +27,14 @@ def number(*, low: float, inclusive: bool = True, integer: bool = False) -> Call
 seconds = number(low=0.0)
 positive = number(low=0.0, inclusive=False)
 steps = number(low=1000, integer=True)
+
+
+def band(text: str) -> tuple[float, float]:
+    """``LO:HI`` in Hz, 0 <= LO < HI, both finite."""
+    try:
+        low, high = (float(x) for x in text.split(":"))
+    except ValueError:
+        low = high = math.nan
+    if not (math.isfinite(low) and math.isfinite(high) and 0 <= low < high):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected LO:HI in Hz, 0 <= LO < HI, e.g. 10:1200")
+    return low, high

@@ -48,7 +48,8 @@ def add_parser(sub) -> None:
     p.add_argument("--params", default=",".join(DEFAULT_PARAMETERS), metavar="P,P,...",
                    help=f"parameters to fit: dotted model keys or the aliases {', '.join(ALIASES)} "
                         f"(default {','.join(DEFAULT_PARAMETERS)})")
-    p.add_argument("--band", metavar="LO:HI", help="fit only this band in Hz (default: all measured)")
+    p.add_argument("--band", metavar="LO:HI", type=argtypes.band, default=(0.0, math.inf),
+                   help="fit only this band in Hz (default: all measured)")
     p.add_argument("--min-coherence", type=argtypes.number(low=0.0), default=0.5, metavar="G",
                    help="leave out points of lower coherence (default 0.5)")
     p.add_argument("--eigenfrequencies", metavar="CSV",
@@ -60,18 +61,6 @@ def add_parser(sub) -> None:
     p.add_argument("--plot", metavar="DIR", help="also write figure 5a (before and after the fit) into DIR")
     p.add_argument("--json", action="store_true", help="print the result as one JSON object")
     p.set_defaults(run=run)
-
-
-def parse_band(text: str | None) -> tuple[float, float]:
-    if text is None:
-        return (0.0, math.inf)
-    try:
-        low, high = (float(x) for x in text.split(":"))
-    except ValueError:
-        raise ConfigError("--band", text, "LO:HI in Hz, e.g. 50:600") from None
-    if not 0 <= low < high:
-        raise ConfigError("--band", text, "0 <= LO < HI")
-    return low, high
 
 
 def read_eigenfrequencies(path: str) -> list[Eigenfrequency]:
@@ -161,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
 
     start = load_model_file(args.config)
     settings = FitSettings(parameters=tuple(p.strip() for p in args.params.split(",") if p.strip()),
-                           band_hz=parse_band(args.band), min_coherence=args.min_coherence,
+                           band_hz=args.band, min_coherence=args.min_coherence,
                            max_evaluations=int(args.max_evaluations))
     if settings.min_coherence >= 1:
         raise ConfigError("--min-coherence", settings.min_coherence, "a coherence below 1")

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 
-from beamctl.config.schema import ConfigError
 from beamctl.models.measured import resonances
 from beamctl.tools import argtypes
 from beamctl.tools.excitation import SIGNALS, SUPPORT_INPUTS
@@ -33,7 +32,7 @@ def add_parser(sub) -> None:
                    help="result file; FILE.npz and FILE.mat are both written")
     p.add_argument("--signal", choices=SIGNALS, default="multisine",
                    help="excitation: multisine (random phases), chirp or prbs (default multisine)")
-    p.add_argument("--band", metavar="LO:HI", default="10:1200",
+    p.add_argument("--band", metavar="LO:HI", type=argtypes.band, default=(10.0, 1200.0),
                    help="frequency band in Hz (default 10:1200)")
     p.add_argument("--amplitude", type=argtypes.positive, default=5.0, metavar="V",
                    help="peak stack swing about bias in V (default 5)")
@@ -56,19 +55,11 @@ def add_parser(sub) -> None:
     p.set_defaults(run=run)
 
 
-def parse_band(text: str) -> tuple[float, float]:
-    try:
-        low, high = (float(x) for x in text.split(":"))
-    except ValueError:
-        raise ConfigError("--band", text, "LO:HI in Hz, e.g. 10:1200") from None
-    return low, high
-
-
 def run(args: argparse.Namespace) -> int:
     from beamctl.tools.frf_files import check_frf_out, write_frf
 
     cfg = load_service_config(args.config)
-    settings = IdentifySettings(load_n=args.load, signal=args.signal, band_hz=parse_band(args.band),
+    settings = IdentifySettings(load_n=args.load, signal=args.signal, band_hz=args.band,
                                 amplitude_v=args.amplitude, resolution_hz=args.resolution,
                                 averages=int(args.averages), supports=args.supports,
                                 closed_loop=args.closed_loop, max_strain=args.max_strain, seed=int(args.seed))

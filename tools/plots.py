@@ -51,6 +51,20 @@ def _save(fig, path: Path) -> Path:
     return Path(path)
 
 
+def _finish_bode(fig, ax_m, ax_p, path: Path, title: str) -> Path:
+    """Label, grid and save an amplitude/phase figure of Gy/z (figures 5a and 6)."""
+    ax_m.set_ylabel("|Gy/z| in 1/N (strain per N)")
+    ax_p.set_ylabel("arg Gy/z in deg")
+    ax_p.set_xlabel("frequency f in Hz")
+    ax_p.set_yticks([-180, -90, 0, 90, 180])
+    ax_m.set_title(title)
+    for ax in (ax_m, ax_p):
+        ax.grid(True, alpha=0.3)
+    ax_m.legend(loc="lower left", fontsize=8)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
 def eigenfrequencies_vs_load(model: FEModel, reduced: ModalModel, path: Path,
                              measured: Sequence[FrfData] = ()) -> Path:
     """Figure 5b: the first three eigenfrequencies versus axial load up to the critical load; the
@@ -93,16 +107,7 @@ def frequency_response_full_vs_reduced(model: FEModel, reduced: ModalModel, axia
         phase = np.degrees(np.angle(g))
         phase[phase <= -180.0 + 1e-6] += 360.0  # report the half-turn as +180 deg throughout
         ax_p.plot(freqs_hz, phase, style, color=color)
-    ax_m.set_ylabel("|Gy/z| in 1/N (strain per N)")
-    ax_p.set_ylabel("arg Gy/z in deg")
-    ax_p.set_xlabel("frequency f in Hz")
-    ax_p.set_yticks([-180, -90, 0, 90, 180])
-    ax_m.set_title(f"Frequency responses at Fx = {axial_load:g} N (figure 6)")
-    for ax in (ax_m, ax_p):
-        ax.grid(True, alpha=0.3)
-    ax_m.legend(loc="lower left", fontsize=8)
-    fig.tight_layout()
-    return _save(fig, path)
+    return _finish_bode(fig, ax_m, ax_p, path, f"Frequency responses at Fx = {axial_load:g} N (figure 6)")
 
 
 def frequency_response_measured(d: FrfData, models: Sequence[tuple[str, np.ndarray]], path: Path) -> Path:
@@ -123,16 +128,8 @@ def frequency_response_measured(d: FrfData, models: Sequence[tuple[str, np.ndarr
     for (i, j), style, name in (((0, 0), "--", "Gy"), ((1, 1), ":", "Gz")):
         if np.all(np.isfinite(d.frf[:, i, j])):
             draw(d.frf[:, i, j], style, "tab:blue", f"measured, {name}")
-    ax_m.set_ylabel("|Gy/z| in 1/N (strain per N)")
-    ax_p.set_ylabel("arg Gy/z in deg")
-    ax_p.set_xlabel("frequency f in Hz")
-    ax_p.set_yticks([-180, -90, 0, 90, 180])
-    ax_m.set_title(f"Frequency responses at Fx = {d.load_n:.0f} N, model and measurement (figure 5a)")
-    for ax in (ax_m, ax_p):
-        ax.grid(True, alpha=0.3)
-    ax_m.legend(loc="lower left", fontsize=8)
-    fig.tight_layout()
-    return _save(fig, path)
+    return _finish_bode(fig, ax_m, ax_p, path,
+                        f"Frequency responses at Fx = {d.load_n:.0f} N, model and measurement (figure 5a)")
 
 
 def gains_vs_load(table, path: Path) -> Path:
