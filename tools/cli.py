@@ -55,6 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
         model_cmd,
         plant_cmd,
         run_cmd,
+        study_cmd,
     )
 
     parser = _Parser(
@@ -70,6 +71,7 @@ def build_parser() -> argparse.ArgumentParser:
     plant_cmd.add_parser(sub)
     run_cmd.add_parser(sub)
     bench_cmd.add_parser(sub)
+    study_cmd.add_parser(sub)
     return parser
 
 

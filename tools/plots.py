@@ -279,3 +279,39 @@ def experiment_figures(summary: dict, traces: dict, out_dir: Path) -> list[Path]
                          title="Piezo stack voltages versus load (limits 0 and 150 V)",
                          legend={"fontsize": 7, "loc": "lower left"}))
     return paths
+
+
+def study_figures(rows: Sequence[dict], designs: Sequence[str], out_dir: Path) -> list[Path]:
+    """An uncertainty study's report: held load / own critical load as a histogram and an
+    empirical CDF per design, and the probability of failure versus axial load."""
+    plt = _pyplot()
+    fig, (ax_h, ax_c) = plt.subplots(1, 2, figsize=(10, 4))
+    fig_p, ax_p = plt.subplots(figsize=(7, 4.5))
+    for design in designs:
+        mine = [r for r in rows if r["design"] == design]
+        ratio = np.array([r["ratio"] for r in mine], dtype=float)
+        ratio = ratio[np.isfinite(ratio)]
+        held = np.sort(np.array([r["held_load_n"] for r in mine], dtype=float))
+        held = held[np.isfinite(held)]
+        label = Path(design).name
+        if len(ratio):
+            ax_h.hist(ratio, bins=max(5, min(50, len(ratio) // 5)), alpha=0.5, label=label)
+            x = np.sort(ratio)
+            ax_c.step(x, np.arange(1, len(x) + 1) / len(x), where="post", label=label)
+        if len(held):
+            ax_p.step(held, np.arange(1, len(held) + 1) / len(mine), where="post", label=label)
+    ax_h.set_xlabel("held load / own Fx,cr")
+    ax_h.set_ylabel("samples")
+    ax_h.set_title("Held load over the study")
+    ax_c.set_xlabel("held load / own Fx,cr")
+    ax_c.set_ylabel("fraction of samples at or below")
+    ax_c.set_title("Empirical CDF")
+    for ax in (ax_h, ax_c):
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    paths = [_save(fig, Path(out_dir) / "study_ratio.png")]
+    paths.append(_finish(fig_p, ax_p, Path(out_dir) / "study_failure_probability.png",
+                         xlabel="axial load Fx in N", ylabel="probability the beam is let go below Fx",
+                         title="Probability of failure versus axial load", legend={"fontsize": 8}))
+    return paths

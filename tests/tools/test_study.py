@@ -1,0 +1,195 @@
+"""``beamctl study`` on Dask: the laws, the same rows whatever runs them, a resumed study, and a
+worker lost mid-study."""
+
+import csv
+import json
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from beamctl.config.schema import ConfigError
+from beamctl.tools.cli import main
+from beamctl.tools.study import draw, study_from_dict
+
+distributed = pytest.importorskip("distributed")
+
+# a small linear study: 6 rigs of the shipped design's box-like scatter, coarse load steps
+STUDY = {"study": {
+    "kind": "linear", "samples": 6, "seed": 3,
+    "parameters": {
+        "model.beam.youngs_modulus": {"law": "uniform", "low": 72.0e9, "high": 79.6e9},
+        "model.supports.rotational_stiffness": {"law": "normal", "mean": 192.4, "std": 15.0},
+        "io.delay_samples": {"law": "truncated-normal", "mean": 0.5, "std": 0.2, "low": 0.0, "high": 1.0},
+        "actuators.force_constant_n_per_v": {"law": "uniform", "low": 2.4, "high": 3.6}},
+    "linear": {"max_step_n": 200, "fine_step_n": 40}}}
+
+
+def _write(tmp_path: Path, data: dict, name: str = "study.yaml") -> str:
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(data))
+    return str(path)
+
+
+def _rows(folder: Path) -> list[dict]:
+    with open(folder / "samples.csv", newline="") as f:
+        return sorted(csv.DictReader(f), key=lambda r: (int(r["sample"]), r["design"]))
+
+
+def test_the_laws_stay_within_their_bounds_and_the_seed_fixes_the_draw():
+    study = study_from_dict({"study": {**STUDY["study"], "samples": 2000}})
+    values = draw(study)
+    e, kr, delay, k = values.T
+    assert e.min() >= 72.0e9 and e.max() <= 79.6e9
+    assert delay.min() >= 0.0 and delay.max() <= 1.0, "truncated to [0, 1]"
+    assert abs(kr.mean() - 192.4) < 3 * 15.0 / np.sqrt(2000) and abs(kr.std() - 15.0) < 1.0
+    np.testing.assert_array_equal(values, draw(study))
+    lhs = study_from_dict({"study": {**STUDY["study"], "samples": 50, "sampling": "latin-hypercube",
+                                     "parameters": {"model.beam.youngs_modulus": STUDY["study"]["parameters"][
+                                         "model.beam.youngs_modulus"]}}})
+    strata = np.floor((draw(lhs)[:, 0] - 72.0e9) / (7.6e9 / 50)).astype(int)
+    assert sorted(strata.tolist()) == list(range(50)), "one sample in each of 50 strata"
+
+
+@pytest.mark.parametrize("change, key", [
+    ({"parameters": {"model.beam.colour": {"law": "uniform", "low": 0, "high": 1}}},
+     "study.parameters.model.beam.colour"),
+    ({"parameters": {"model.beam.radius": {"law": "gamma", "k": 2}}},
+     "study.parameters.model.beam.radius.law"),
+    ({"parameters": {"model.beam.radius": {"law": "normal", "mean": 4e-3, "std": -1}}},
+     "study.parameters.model.beam.radius.std"),
+    ({"sampling": "latin-hypercube"}, "study.sampling"),
+    ({"samples": 0}, "study.samples"),
+    ({"kind": "nonlinear"}, "study.kind"),
+    ({"designs": ["no-such-table.yaml"]}, "study.designs"),
+])
+def test_a_bad_study_file_is_refused_naming_the_key(change, key):
+    with pytest.raises(ConfigError) as info:
+        study_from_dict({"study": {**STUDY["study"], **change}})
+    assert info.value.key == key
+
+
+@pytest.fixture(scope="module")
+def embedded(tmp_path_factory):
+    """The study on the embedded local cluster (two worker processes)."""
+    folder = tmp_path_factory.mktemp("embedded")
+    config = _write(folder, STUDY)
+    assert main(["study", "--config", config, "--out", str(folder / "out"), "--workers", "2"]) == 0
+    return folder / "out"
+
+
+def test_the_study_writes_one_row_per_sample_a_summary_and_figures(embedded):
+    rows = _rows(embedded)
+    assert [int(r["sample"]) for r in rows] == list(range(6))
+    for r in rows:
+        held, critical = float(r["held_load_n"]), float(r["critical_load_n"])
+        assert 2500 < critical < 3500, "the rig's own critical load, E and kr scattered"
+        assert float(r["ratio"]) == pytest.approx(held / critical)
+    summary = json.loads((embedded / "summary.json").read_text())
+    assert summary["samples"] == 6 and summary["worst_ratio"] == pytest.approx(
+        min(float(r["ratio"]) for r in rows))
+    design = next(iter(summary["designs"].values()))
+    assert list(design["sensitivity"])[0] == "model.beam.youngs_modulus", (
+        "the beam's stiffness moves the held load most")
+    for name in ("study_ratio.png", "study_failure_probability.png"):
+        assert (embedded / name).read_bytes()[:4] == b"\x89PNG"
+
+
+def test_a_stopped_study_resumes_where_it_stopped(embedded, tmp_path, capsys):
+    folder = tmp_path / "out"
+    folder.mkdir()
+    for name in ("study.json",):
+        (folder / name).write_text((embedded / name).read_text())
+    lines = (embedded / "samples.csv").read_text().splitlines()
+    (folder / "samples.csv").write_text("\n".join(lines[:3]) + "\n" + lines[3][:20])   # 2 rows and a cut one
+    config = _write(tmp_path, STUDY)
+    assert main(["study", "--config", config, "--out", str(folder), "--workers", "1", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["resumed"] == 2 and summary["run"] == 4
+    assert _rows(folder) == _rows(embedded)
+
+
+def test_a_folder_of_another_study_is_refused(embedded, tmp_path, capsys):
+    config = _write(tmp_path, {"study": {**STUDY["study"], "seed": 4}})
+    assert main(["study", "--config", config, "--out", str(embedded)]) == 2
+    assert "another study" in capsys.readouterr().err
+
+
+class _Cluster:
+    """A Dask scheduler and two workers, each a process of its own on 127.0.0.1 (`dask scheduler`,
+    `dask worker --no-nanny`: a killed worker stays dead)."""
+
+    def __init__(self, folder: Path) -> None:
+        dask = str(Path(sys.executable).parent / "dask")
+        self.file = folder / "scheduler.json"
+        common = ["--no-dashboard"]
+        self.scheduler = subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", "0",
+                                           "--scheduler-file", str(self.file), *common],
+                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        deadline = time.monotonic() + 60
+        while not self.file.exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        self.address = json.loads(self.file.read_text())["address"]
+        worker = [dask, "worker", "--scheduler-file", str(self.file), "--nthreads", "1", "--no-nanny",
+                  "--host", "127.0.0.1", *common]
+        self.workers = [subprocess.Popen(worker,
+                                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                         env={**__import__("os").environ, "OPENBLAS_NUM_THREADS": "1"})
+                        for _ in range(2)]
+        with distributed.Client(self.address, timeout=30) as client:
+            client.wait_for_workers(2, timeout=60)
+
+    def close(self) -> None:
+        for p in self.workers:
+            p.kill()
+        self.scheduler.send_signal(signal.SIGINT)
+        for p in (*self.workers, self.scheduler):
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory):
+    c = _Cluster(tmp_path_factory.mktemp("cluster"))
+    yield c
+    c.close()
+
+
+def test_an_existing_cluster_gives_the_rows_of_the_embedded_one(cluster, embedded, tmp_path):
+    config = _write(tmp_path, STUDY)
+    out = tmp_path / "out"
+    assert main(["study", "--config", config, "--out", str(out), "--scheduler", cluster.address]) == 0
+    assert _rows(tmp_path / "out") == _rows(embedded)
+
+
+def test_a_worker_killed_mid_study_loses_no_sample(tmp_path):
+    """The rows of a worker that died are computed again elsewhere: every sample once."""
+    local = _Cluster(tmp_path)
+    try:
+        from beamctl.tools.study import study_from_dict as parse
+        from beamctl.tools.study_cmd import run_study
+
+        study = parse({"study": {**STUDY["study"], "samples": 8}})
+        killed = threading.Event()
+
+        def kill_after_the_first_row(done, total, label):
+            if not killed.is_set():
+                local.workers[0].kill()
+                killed.set()
+
+        with distributed.Client(local.address, timeout=30) as client:
+            rows, counts = run_study(study, tmp_path, client, progress=kill_after_the_first_row)
+        assert killed.is_set() and local.workers[0].wait(timeout=10) == -signal.SIGKILL
+    finally:
+        local.close()
+    assert sorted(r["sample"] for r in rows) == list(range(8))
+    assert [int(r["sample"]) for r in _rows(tmp_path)] == list(range(8)), "written once each"

@@ -1,0 +1,179 @@
+"""``beamctl study``: an uncertainty study (tools/study.py) on a Dask cluster: an embedded local
+one by default, or an existing one (``--scheduler tcp://host:port``). Rows are appended to
+``DIR/samples.csv`` as they arrive; a study stopped part-way resumes where it stopped when run
+again with the same study file and folder."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import math
+import time
+from pathlib import Path
+
+from beamctl.config.schema import ConfigError
+from beamctl.tools import argtypes
+from beamctl.tools.outputs import check_dir, replacing, write_text
+from beamctl.tools.progress import ProgressBar
+from beamctl.tools.study import Study, Task, load_study, run_task, summarise, tasks
+
+ROWS = "samples.csv"
+STUDY = "study.json"
+FIXED_COLUMNS = ("held_load_n", "critical_load_n", "ratio", "reason", "seed")
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("study", help="uncertainty study: many scattered rigs against the designs, on Dask",
+                       description="Draw rigs from the study file's parameter laws, run each against each "
+                                   "design (linear: stable-to load; experiment: the load ramp) on a Dask "
+                                   "cluster, write one row per sample as it arrives and a report.")
+    p.add_argument("--config", metavar="STUDY.yaml", required=True, help="the study file (a study: section)")
+    p.add_argument("--out", metavar="DIR", required=True,
+                   help="the study's folder: samples.csv, study.json, summary.json, figures; a folder "
+                        "with part of the same study resumes it")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="an existing Dask scheduler, e.g. tcp://10.0.0.5:8786 (default: a local cluster "
+                        "here)")
+    p.add_argument("--workers", type=argtypes.number(low=1, integer=True), metavar="N",
+                   help="worker processes of the local cluster (default: the cores)")
+    p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    p.set_defaults(run=run)
+
+
+def _columns(study: Study) -> list[str]:
+    return ["sample", "design", *study.parameters, *FIXED_COLUMNS]
+
+
+def _read_rows(path: Path, study: Study) -> list[dict]:
+    """The rows already written (a resumed study), typed; a last line cut short when the study
+    was stopped is dropped; a file of another study is refused."""
+    text = path.read_text(encoding="utf-8")
+    if text and not text.endswith("\n"):
+        text = text[:text.rfind("\n") + 1]
+    reader = csv.DictReader(io.StringIO(text))
+    if reader.fieldnames != _columns(study):
+        raise ConfigError("--out", str(path.parent), "a folder of this study (its samples.csv has other "
+                          "columns): give another folder")
+    rows = []
+    for r in reader:
+        typed: dict = {"sample": int(r["sample"]), "design": r["design"], "reason": r["reason"],
+                       "seed": int(r["seed"])}
+        for k in (*study.parameters, "held_load_n", "critical_load_n", "ratio"):
+            typed[k] = float(r[k])
+        rows.append(typed)
+    return rows
+
+
+def _write_rows(path: Path, study: Study, rows: list[dict]) -> None:
+    """samples.csv whole: the header and ``rows`` (a resumed study starts from a clean file)."""
+    with replacing(path) as temp, open(temp, "w", newline="", encoding="utf-8") as f:
+        writer = csv.DictWriter(f, fieldnames=_columns(study))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def prepare(study: Study, out: Path) -> list[dict]:
+    """The folder of the study: its rows so far (resume) or a new samples.csv with its header."""
+    rows_path, study_path = out / ROWS, out / STUDY
+    if study_path.exists():
+        recorded = json.loads(study_path.read_text())
+        if recorded.get("digest") != study.digest():
+            raise ConfigError("--out", str(out), f"a folder of this study: it holds another study "
+                              f"({recorded.get('source', '?')}); give another folder")
+    else:
+        write_text(study_path, json.dumps({"digest": study.digest(), "source": study.source,
+                                           "study": study.to_dict()}, indent=1))
+    rows = _read_rows(rows_path, study) if rows_path.exists() else []
+    _write_rows(rows_path, study, rows)
+    return rows
+
+
+def run_study(study: Study, out: Path, client, progress=None) -> tuple[list[dict], dict]:
+    """Run the study's remaining tasks on ``client`` (a dask.distributed Client), appending each
+    row to ``out/samples.csv`` as it arrives; return all rows and the counts."""
+    from distributed import as_completed
+
+    rows = prepare(study, out)
+    done = {(r["sample"], r["design"]) for r in rows}
+    todo: list[Task] = tasks(study, done)
+    total = study.samples * len(study.designs)
+    start = time.monotonic()
+    keys = [f"beamctl-study-{study.digest()[:12]}-{t.sample}-{study.designs.index(t.design)}" for t in todo]
+    futures = client.map(run_task, todo, key=keys, pure=False) if todo else []
+    columns = _columns(study)
+    new = 0
+    try:
+        with open(out / ROWS, "a", newline="", encoding="utf-8") as f:
+            writer = csv.DictWriter(f, fieldnames=columns)
+            for future in as_completed(futures):
+                row = {**future.result(), "seed": study.seed}
+                writer.writerow(row)
+                f.flush()
+                rows.append(row)
+                new += 1
+                if progress is not None:
+                    elapsed = time.monotonic() - start
+                    rate = new / elapsed if elapsed > 0 else 0.0
+                    left = (total - len(rows)) / rate if rate > 0 else math.inf
+                    progress(len(rows), total, f"{rate:.2f}/s, {left:.0f} s left")
+    finally:
+        for future in futures:
+            future.cancel()
+    return rows, {"resumed": total - len(todo), "run": new, "wall_s": time.monotonic() - start}
+
+
+def _client(args: argparse.Namespace):
+    """(client, cluster or None): the scheduler given, or a local cluster of worker processes on
+    127.0.0.1 with one thread (and one BLAS thread) each."""
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise ConfigError("beamctl study", "", "dask.distributed installed: pip install 'beamctl[study]'") \
+            from None
+    if args.scheduler:
+        try:
+            return Client(args.scheduler, timeout=10), None
+        except OSError as exc:
+            raise ConfigError("--scheduler", args.scheduler,
+                              f"the address of a running Dask scheduler ({exc})") from None
+    import os
+
+    workers = int(args.workers or os.cpu_count() or 1)
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+                           dashboard_address=None)
+    return Client(cluster), cluster
+
+
+def run(args: argparse.Namespace) -> int:
+    study = load_study(args.config)
+    out = check_dir(args.out, "--out")
+    prepare(study, out)                 # refuse a folder of another study before a cluster starts
+    client, cluster = _client(args)
+    try:
+        with ProgressBar("study") as bar:
+            rows, counts = run_study(study, out, client, progress=bar)
+            bar.close()
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    summary = summarise(rows, list(study.parameters), counts["wall_s"])
+    summary.update(resumed=counts["resumed"], run=counts["run"], kind=study.kind)
+    from beamctl.tools import plots
+
+    figures = plots.study_figures(rows, study.designs, out)
+    write_text(out / "summary.json", json.dumps(summary, indent=1))
+    if args.json:
+        print(json.dumps(summary, indent=1))
+        return 0
+    print(f"{summary['samples']} samples x {len(study.designs)} design(s), {study.kind}: "
+          f"{counts['run']} run now, {counts['resumed']} from before, {counts['wall_s']:.1f} s")
+    for design, d in summary["designs"].items():
+        q = d["ratio_quantiles"]
+        print(f"  {design}: worst held load / own Fx,cr {d['worst_ratio']:.4f}, "
+              f"5 % {q.get('5', math.nan):.4f}, median {q.get('50', math.nan):.4f}; most sensitive: "
+              f"{', '.join(f'{k} {v:+.2f}' for k, v in list(d['sensitivity'].items())[:3]) or '-'}")
+    print(f"report: {out}/ ({', '.join(p.name for p in figures)}, {ROWS}, summary.json)")
+    return 0
