@@ -193,3 +193,24 @@ def test_a_worker_killed_mid_study_loses_no_sample(tmp_path):
         local.close()
     assert sorted(r["sample"] for r in rows) == list(range(8))
     assert [int(r["sample"]) for r in _rows(tmp_path)] == list(range(8)), "written once each"
+
+
+def test_an_experiment_sample_runs_the_load_ramp_on_its_own_rig():
+    """The time-domain kind, one sample: the rig's own beam (E drawn), its stacks, the shipped
+    scenario's bow; the controller holds it past the rig's own critical load until the stacks
+    run out, and a rig whose parameters give no valid model is a row with the reason."""
+    from beamctl.tools.study import run_task, tasks
+
+    study = study_from_dict({"study": {
+        "kind": "experiment", "samples": 1, "seed": 1,
+        "parameters": {"model.beam.youngs_modulus": {"law": "uniform", "low": 75.0e9, "high": 77.0e9},
+                       "actuators.force_constant_n_per_v": {"law": "uniform", "low": 2.9, "high": 3.1}},
+        "experiment": {"plant": {"load": {"start": 1500.0, "end": 3800.0, "rate": 400.0, "hold": 0.2}}}}})
+    row = run_task(tasks(study)[0])
+    assert row["critical_load_n"] == pytest.approx(3194.0, rel=0.02), "Table 1's beam, E within 1.3 %"
+    assert 1.0 < row["ratio"] < 1.1, f"held past its own Fx,cr until the stacks ran out: {row}"
+    assert row["reason"].startswith("deflection passed 1.5 mm")
+    bad = study_from_dict({"study": {"kind": "experiment", "samples": 1, "seed": 1, "parameters": {
+        "model.damping.ratios[0]": {"law": "uniform", "low": 0.5, "high": 0.6}}}})
+    row = run_task(tasks(bad)[0])
+    assert np.isnan(row["ratio"]) and row["reason"].startswith("invalid rig: damping.ratios")
