@@ -19,15 +19,16 @@ frozen) first, then the HAL is opened (if the caller has not), then whatever the
 before the controller was ready is discarded and counted, all but the newest sample, which arms.
 At the end the final state is announced to the hardware (the DAQ sees STOPPED or FAULT).
 
-SIGINT and SIGTERM ask for a stop: the voltages ramp to bias, telemetry is flushed, and
-``run`` returns normally; ``RunResult.signal_received`` names the signal, so that the caller
-decides what it means (the service: the operator's stop; a simulated experiment: cut short).
+The loop installs no signal handler: a command that wants SIGINT and SIGTERM to stop the run
+installs them (tools/signals.py ``stop_on_signals``) and passes the ``StopRequest`` they set.
+The loop looks at it every cycle: the voltages ramp to bias, telemetry is flushed, and ``run``
+returns normally; ``RunResult.signal_received`` names the signal, so that the caller decides
+what it means (the service: the operator's stop; a simulated experiment: cut short). Without a
+request, a KeyboardInterrupt leaves the loop through the emergency ramp to bias.
 """
 
 from __future__ import annotations
 
-import signal
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -48,6 +49,23 @@ from beamctl.rt.controller import (
 from beamctl.rt.safety import Fault, State
 from beamctl.rt.telemetry import TelemetryWriter
 from beamctl.rt.timing import LoopTiming
+
+
+class StopRequest:
+    """A stop asked from outside the loop: a signal handler or another thread sets it once
+    (the first reason wins), the loop reads it each cycle."""
+
+    __slots__ = ("reason", "signal_name")
+
+    def __init__(self) -> None:
+        self.reason = ""
+        self.signal_name = ""
+
+    def set(self, reason: str, signal_name: str = "") -> None:
+        if signal_name and not self.signal_name:
+            self.signal_name = signal_name
+        if not self.reason:
+            self.reason = reason
 
 
 @dataclass
@@ -74,8 +92,10 @@ class ControlLoop:
                  stop_on_fault: bool = True, start: bool = True, spin_time: float = 2e-4,
                  clock: Callable[[], float] = time.perf_counter,
                  sleep: Callable[[float], None] = time.sleep,
-                 on_cycle: Callable[[ControlLoop], None] | None = None) -> None:
+                 on_cycle: Callable[[ControlLoop], None] | None = None,
+                 stop: StopRequest | None = None) -> None:
         self.controller = controller
+        self.stop = stop
         self.hal = hal
         self.pacing = pacing or controller.config.pacing
         if self.pacing not in ("timer", "sample"):
@@ -107,16 +127,8 @@ class ControlLoop:
         the controller starts again from bias at the next sample."""
         self._rearm_requested = True
 
-    def _on_signal(self, signum, _frame) -> None:
-        self._signal_received = signal.Signals(signum).name
-        self.request_stop(self._signal_received)
-
     # -- the loop ---------------------------------------------------------------------------------
     def run(self, require_rt: bool = False, acquire_rt: bool = True) -> RunResult:
-        installed = {}
-        if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                installed[sig] = signal.signal(sig, self._on_signal)
         rt_report = {}
         try:
             if acquire_rt:
@@ -133,8 +145,6 @@ class ControlLoop:
         finally:
             if acquire_rt:
                 realtime.release()
-            for sig, previous in installed.items():
-                signal.signal(sig, previous)
             if self.telemetry is not None:
                 self.telemetry.close()
         c = self.controller
@@ -213,7 +223,12 @@ class ControlLoop:
         next_deadline = clock() + period
         self._last_sample = clock()         # the arming sample
         previous_start = None
+        stop = self.stop
         while True:
+            if stop is not None and stop.reason:
+                if stop.signal_name:
+                    self._signal_received = stop.signal_name
+                self.request_stop(stop.reason)
             if self._stop_signal and c.state not in (State.STOPPING, State.STOPPED):
                 c.request_stop()
             if self.max_cycles is not None and self.cycles >= self.max_cycles:

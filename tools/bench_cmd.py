@@ -25,7 +25,7 @@ from beamctl.hal.dbc import Contract
 from beamctl.rt.config import controller_config
 from beamctl.rt.controller import Controller
 from beamctl.tools.argtypes import steps
-from beamctl.tools.signals import Interrupted
+from beamctl.tools.signals import Interrupted, stop_on_signals
 
 EMULATOR_PRIORITY = 70         # SCHED_FIFO of the emulator's process (the controller's is 80)
 
@@ -82,7 +82,9 @@ def timer_pacing(cycles: int = 5000) -> dict:
                                 "load": {"start": 2000.0, "end": 2000.0}}))
     hal = SimBackend(plant, geometry(config.actuators)).open()
     try:
-        result = ControlLoop(Controller(table, config), hal, max_cycles=cycles).run(acquire_rt=False)
+        with stop_on_signals() as stop:
+            loop = ControlLoop(Controller(table, config), hal, max_cycles=cycles, stop=stop)
+            result = loop.run(acquire_rt=False)
     finally:
         hal.close()
     if result.signal_received:
@@ -143,8 +145,9 @@ def can_latency(samples: int = 10_000, load_n: float = 2000.0) -> dict:
             ages[answered] = age
             answered += 1
 
-    loop = ControlLoop(controller, backend, max_cycles=samples + 2 * warm_up, on_cycle=on_cycle)
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, stop_on_signals() as stop:
+        loop = ControlLoop(controller, backend, max_cycles=samples + 2 * warm_up, on_cycle=on_cycle,
+                           stop=stop)
         cfg = Path(tmp) / "plant.yaml"
         cfg.write_text(json.dumps({"plant": {"load": {"start": load_n, "end": load_n},
                                              "bow": {"amplitude": 5e-5, "angle_deg": 234.0}}}))

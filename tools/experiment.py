@@ -40,7 +40,7 @@ from beamctl.models import build_model, critical_load, reduce
 from beamctl.models.analysis import lateral_displacements
 from beamctl.models.plant import plant_config
 from beamctl.rt.controller import Controller
-from beamctl.rt.loop import ControlLoop
+from beamctl.rt.loop import ControlLoop, StopRequest
 from beamctl.rt.safety import Fault
 from beamctl.rt.telemetry import TelemetryWriter
 from beamctl.tools.service import (
@@ -167,7 +167,7 @@ def experiment_tables(cfg: ServiceConfig, settings: dict) -> dict[str, GainTable
 
 
 def run_mode(mode: str, cfg: ServiceConfig, settings: dict, table: GainTable,
-             telemetry_dir: Path | None = None, progress=None) -> RunTrace:
+             telemetry_dir: Path | None = None, progress=None, stop: StopRequest | None = None) -> RunTrace:
     """One load ramp with ``table``; full-rate telemetry into ``telemetry_dir/telemetry_<mode>.btl``
     if given."""
     controller_cfg = replace(cfg.controller, pacing="sample",
@@ -217,7 +217,7 @@ def run_mode(mode: str, cfg: ServiceConfig, settings: dict, table: GainTable,
             telemetry = TelemetryWriter.for_controller(telemetry_dir / f"telemetry_{mode}.btl", controller,
                                                        meta={"mode": mode, "scenario": cfg.source}).start()
             trace.telemetry = str(telemetry.path)
-        loop = ControlLoop(controller, hal, telemetry=telemetry, stop_on_fault=False,
+        loop = ControlLoop(controller, hal, telemetry=telemetry, stop_on_fault=False, stop=stop,
                            start=(mode != "uncontrolled"), on_cycle=monitor)
         result = loop.run(acquire_rt=False)
     finally:
@@ -276,7 +276,8 @@ def summarise(trace: RunTrace, design: str) -> dict:
 
 
 def run_experiment(cfg: ServiceConfig, settings: dict, tables: dict[str, GainTable],
-                   telemetry_dir: Path | None = None, progress=None) -> tuple[dict, dict[str, RunTrace]]:
+                   telemetry_dir: Path | None = None, progress=None,
+                   stop: StopRequest | None = None) -> tuple[dict, dict[str, RunTrace]]:
     """Run every mode of ``tables`` (``experiment_tables``) in turn; return the summary and the
     runs' traces. Full-rate telemetry of each run goes into ``telemetry_dir`` if given."""
     modes = tuple(tables)
@@ -285,7 +286,7 @@ def run_experiment(cfg: ServiceConfig, settings: dict, tables: dict[str, GainTab
         def step(fraction: float, label: str, k=k) -> None:
             if progress:
                 progress(round(1000 * (k + fraction) / len(modes)), 1000, f"run {k + 1}/{len(modes)} {label}")
-        traces[mode] = run_mode(mode, cfg, settings, tables[mode], telemetry_dir, step)
+        traces[mode] = run_mode(mode, cfg, settings, tables[mode], telemetry_dir, step, stop)
     if progress:
         progress(1000, 1000, "done")
     io = plant_settings(cfg, tables[modes[0]]).io

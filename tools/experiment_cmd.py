@@ -11,6 +11,7 @@ from beamctl.tools import plots
 from beamctl.tools.experiment import experiment_tables, load_experiment_config, run_experiment
 from beamctl.tools.outputs import check_dir, write_text
 from beamctl.tools.progress import ProgressBar
+from beamctl.tools.signals import stop_on_signals
 
 REPORT_FILES = (*plots.EXPERIMENT_FIGURES, "summary.txt", "summary.json")
 
@@ -80,9 +81,9 @@ def run(args: argparse.Namespace) -> int:
     # now, so that a run cut short leaves nothing that could be taken for its result.
     remove_report(out)
     start = time.monotonic()
-    with ProgressBar("experiment") as bar:
+    with ProgressBar("experiment") as bar, stop_on_signals() as stop:
         summary, traces = run_experiment(cfg, settings, tables, out if args.telemetry else None,
-                                         progress=bar)
+                                         progress=bar, stop=stop)
         bar.close()
     summary["wall_time_s"] = time.monotonic() - start
     table = summary_table(summary)

@@ -45,7 +45,7 @@ from beamctl.models.measured import FrfData, nan_matrix
 from beamctl.models.plant import LoadRamp
 from beamctl.rt.allocation import geometry as controller_geometry
 from beamctl.rt.controller import I_LOAD, Controller
-from beamctl.rt.loop import ControlLoop
+from beamctl.rt.loop import ControlLoop, StopRequest
 from beamctl.rt.safety import Fault
 from beamctl.tools.excitation import (
     SIGNALS,
@@ -192,7 +192,8 @@ def excitation_plan(s: IdentifySettings, cfg: ServiceConfig, sample_rate_hz: flo
     return np.vstack(rows), np.concatenate(reference), inputs, period, periods, transient
 
 
-def record(cfg: ServiceConfig, table: GainTable, s: IdentifySettings, progress=None) -> Recording:
+def record(cfg: ServiceConfig, table: GainTable, s: IdentifySettings, progress=None,
+           stop: StopRequest | None = None) -> Recording:
     """Run the excitation through the configured HAL and record it (see the module docstring).
     Raises IdentificationError (the stacks at bias) or Interrupted (Ctrl-C, SIGTERM)."""
     rate = table.design.sample_rate_hz
@@ -303,7 +304,7 @@ def record(cfg: ServiceConfig, table: GainTable, s: IdentifySettings, progress=N
         elif progress is not None and state["cycles"] % every == 0:
             progress(0, n, f"load {load:.0f} N")
 
-    loop = ControlLoop(controller, hal, stop_on_fault=True, on_cycle=on_cycle)
+    loop = ControlLoop(controller, hal, stop_on_fault=True, on_cycle=on_cycle, stop=stop)
     try:
         result = loop.run(acquire_rt=False)
     except HalError as exc:                 # the HAL would not open: nothing was excited
@@ -366,12 +367,12 @@ def estimate(rec: Recording, sample_rate_hz: float, band_hz: tuple[float, float]
     return freqs[keep], frf, np.clip(coherence, 0.0, 1.0, where=np.isfinite(coherence), out=coherence)
 
 
-def identify(cfg: ServiceConfig, table: GainTable, s: IdentifySettings,
-             progress=None) -> tuple[FrfData, dict]:
+def identify(cfg: ServiceConfig, table: GainTable, s: IdentifySettings, progress=None,
+             stop: StopRequest | None = None) -> tuple[FrfData, dict]:
     """Record and estimate; returns the measurement and a report (timing, counts)."""
     start = time.perf_counter()
     rate = table.design.sample_rate_hz
-    rec = record(cfg, table, s, progress)
+    rec = record(cfg, table, s, progress, stop)
     freqs, frf, coherence = estimate(rec, rate, s.band_hz, s.closed_loop)
     a = cfg.controller.actuators
     io = plant_settings(cfg, table).io if cfg.hal.backend == "sim" else table.design.io

@@ -11,6 +11,7 @@ from beamctl.tools.excitation import SIGNALS, SUPPORT_INPUTS
 from beamctl.tools.identify import IdentificationError, IdentifySettings, identify
 from beamctl.tools.progress import ProgressBar
 from beamctl.tools.service import load_gain_table, load_service_config
+from beamctl.tools.signals import stop_on_signals
 
 EXIT_STOPPED = 1
 
@@ -66,8 +67,8 @@ def run(args: argparse.Namespace) -> int:
     check_frf_out(args.out)
     table = load_gain_table(cfg)
     try:
-        with ProgressBar("identify") as bar:
-            data, report = identify(cfg, table, settings, progress=bar)
+        with ProgressBar("identify") as bar, stop_on_signals() as stop:
+            data, report = identify(cfg, table, settings, progress=bar, stop=stop)
             bar.close()
     except IdentificationError as exc:
         print(f"beamctl identify: stopped: {exc}", flush=True)

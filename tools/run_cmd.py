@@ -27,6 +27,7 @@ from beamctl.tools.argtypes import seconds
 from beamctl.tools.outputs import check_file, check_new_file
 from beamctl.tools.sdnotify import Notifier
 from beamctl.tools.service import build_hal, check_voltage_range, load_gain_table, load_service_config
+from beamctl.tools.signals import stop_on_signals
 
 
 def add_parser(sub) -> None:
@@ -82,29 +83,31 @@ def run(args: argparse.Namespace) -> int:
     def on_cycle(loop: ControlLoop) -> None:
         notifier.feed()
 
-    loop = ControlLoop(controller, hal, telemetry=telemetry, stop_on_fault=False,
-                       max_cycles=max_cycles, on_cycle=on_cycle if notifier.watchdog_interval_s else None)
-    rearm = None
-    if threading.current_thread() is threading.main_thread():
-        rearm = signal.signal(signal.SIGUSR1, lambda *_: loop.request_rearm())
-    notifier.ready(f"running at {table.design.sample_rate_hz:g} Hz")
-    try:
-        result = loop.run(require_rt=args.require_rt)
-    except (realtime.RealtimeError, HalError) as exc:
-        if telemetry.written == 0:      # refused before the first sample: no recording to keep
-            path.unlink(missing_ok=True)
-            for directory in created:
-                try:
-                    directory.rmdir()
-                except OSError:
-                    break
-        print(f"beamctl run: error: {exc}", file=sys.stderr)
-        return 2
-    finally:
-        if rearm is not None:
-            signal.signal(signal.SIGUSR1, rearm)
-        notifier.stopping()
-        hal.close()
+    with stop_on_signals(signal.SIGINT, signal.SIGTERM) as stop:     # the operator's stop
+        loop = ControlLoop(controller, hal, telemetry=telemetry, stop_on_fault=False,
+                           max_cycles=max_cycles, on_cycle=on_cycle if notifier.watchdog_interval_s else None,
+                           stop=stop)
+        rearm = None
+        if threading.current_thread() is threading.main_thread():
+            rearm = signal.signal(signal.SIGUSR1, lambda *_: loop.request_rearm())
+        notifier.ready(f"running at {table.design.sample_rate_hz:g} Hz")
+        try:
+            result = loop.run(require_rt=args.require_rt)
+        except (realtime.RealtimeError, HalError) as exc:
+            if telemetry.written == 0:      # refused before the first sample: no recording to keep
+                path.unlink(missing_ok=True)
+                for directory in created:
+                    try:
+                        directory.rmdir()
+                    except OSError:
+                        break
+            print(f"beamctl run: error: {exc}", file=sys.stderr)
+            return 2
+        finally:
+            if rearm is not None:
+                signal.signal(signal.SIGUSR1, rearm)
+            notifier.stopping()
+            hal.close()
     summary = {"state": result.state, "fault": result.fault, "reason": result.reason, "cycles": result.cycles,
                "late_answers": controller.safety.late_answers, "backlog_discarded": result.backlog_discarded,
                "stopped_by": result.stop_requested_by, "realtime": result.realtime,

@@ -3,7 +3,14 @@ as a shell reports a command a signal ended (130 for Ctrl-C, 143 for SIGTERM).""
 
 from __future__ import annotations
 
+import contextlib
 import signal
+import threading
+from collections.abc import Iterator
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:           # the command line imports this module before numpy: the loop later
+    from beamctl.rt.loop import StopRequest
 
 
 class Interrupted(Exception):
@@ -17,3 +24,28 @@ class Interrupted(Exception):
     def exit_status(self) -> int:
         """128 + the signal's number."""
         return 128 + signal.Signals[self.signal_name].value
+
+
+@contextlib.contextmanager
+def stop_on_signals(*signals: signal.Signals) -> Iterator[StopRequest]:
+    """Within the block, ``signals`` (default SIGINT and SIGTERM) set the request a control loop
+    reads (the stacks ramp to bias, the run ends normally and names the signal); the previous
+    handlers come back after it. A command's choice: library code installs no handler. Off the
+    main thread (where Python allows no handler) the request is only set by its holder."""
+    from beamctl.rt.loop import StopRequest
+
+    request = StopRequest()
+
+    def handler(signum, _frame) -> None:
+        name = signal.Signals(signum).name
+        request.set(name, name)
+
+    installed = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in signals or (signal.SIGINT, signal.SIGTERM):
+            installed[sig] = signal.signal(sig, handler)
+    try:
+        yield request
+    finally:
+        for sig, previous in installed.items():
+            signal.signal(sig, previous)

@@ -19,6 +19,7 @@ from beamctl.rt.controller import COL, FLAG_NO_NEW_SAMPLE, RECORD_COLUMNS, Contr
 from beamctl.rt.loop import ControlLoop
 from beamctl.rt.safety import Fault, State
 from beamctl.rt.telemetry import TelemetryWriter, read_telemetry
+from beamctl.tools.signals import stop_on_signals
 from tests.rt.fakes import ScriptedHal
 
 DEFLECTED = ((8e-5, -4e-5, 3e-5, 1e-5), 1500.0)
@@ -110,18 +111,40 @@ def test_overrun_streak_faults_in_timer_pacing(table):
 
 
 def test_sigterm_ramps_to_bias_and_stops(table):
+    """SIGTERM through the handlers a command installs (tools/signals.py), the loop's stop request."""
     loop, hal = _loop(table, [], pacing="timer", default=oscillating)
     timer = threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGTERM))
     previous = signal.signal(signal.SIGTERM, lambda *_: None)  # never let it reach pytest
     try:
-        timer.start()
-        result = _run(loop)
+        with stop_on_signals(signal.SIGTERM) as stop:
+            loop.stop = stop
+            timer.start()
+            result = _run(loop)
     finally:
         timer.cancel()
         signal.signal(signal.SIGTERM, previous)
     assert result.state == "STOPPED" and result.stop_requested_by == "SIGTERM"
     assert result.fault == "NONE"
     _assert_safe_ramp(hal)
+
+
+def test_the_loop_installs_no_signal_handler(table):
+    """Library code: the loop leaves the process's handlers as they are; Ctrl-C without a stop
+    request of the caller's leaves it through the emergency ramp to bias."""
+    loop, hal = _loop(table, [], default=oscillating, max_cycles=400)
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    seen = []
+
+    def ctrl_c(loop):
+        seen.append((signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)))
+        if loop.cycles == 200:
+            signal.raise_signal(signal.SIGINT)
+
+    loop.on_cycle = ctrl_c
+    with pytest.raises(KeyboardInterrupt):
+        _run(loop)
+    assert set(seen) == {before}, "the handlers during the run are the caller's"
+    np.testing.assert_allclose(hal.written[-1], 75.0, err_msg="the emergency ramp ended at bias")
 
 
 def test_a_signal_during_the_ramp_of_another_stop_is_still_reported(table):
@@ -133,7 +156,9 @@ def test_a_signal_during_the_ramp_of_another_stop_is_still_reported(table):
             signal.raise_signal(signal.SIGINT)
 
     loop.on_cycle = signal_in_the_ramp
-    result = _run(loop)
+    with stop_on_signals() as stop:
+        loop.stop = stop
+        result = _run(loop)
     assert result.stop_requested_by == "cycle limit" and result.signal_received == "SIGINT"
     assert result.state == "STOPPED"
     _assert_safe_ramp(hal)

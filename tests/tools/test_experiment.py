@@ -17,7 +17,7 @@ from beamctl.tools.cli import main
 from beamctl.tools.experiment import BOW_AMPLITUDE_M, experiment_config, first_crossing, run_mode
 from beamctl.tools.experiment_cmd import REPORT_FILES
 from beamctl.tools.service import load_gain_table, plant_parameters
-from beamctl.tools.signals import Interrupted
+from beamctl.tools.signals import Interrupted, stop_on_signals
 from tests.tools.processes import beamctl, interrupt_when
 
 CRITICAL_LOAD_N = 3193.5
@@ -142,8 +142,8 @@ def test_a_signal_during_a_run_ramps_to_bias_and_raises_interrupted(tmp_path):
     def ctrl_c(fraction, label):
         signal.raise_signal(signal.SIGINT)
 
-    with pytest.raises(Interrupted) as info:
-        run_mode("uncontrolled", cfg, settings, load_gain_table(cfg), tmp_path, progress=ctrl_c)
+    with pytest.raises(Interrupted) as info, stop_on_signals() as stop:
+        run_mode("uncontrolled", cfg, settings, load_gain_table(cfg), tmp_path, progress=ctrl_c, stop=stop)
     assert str(info.value) == "SIGINT during the uncontrolled run" and info.value.exit_status == 130
     header, rows = read_telemetry(tmp_path / "telemetry_uncontrolled.btl")
     assert len(rows) > 500, "what was recorded is kept"

@@ -15,7 +15,7 @@ from beamctl.models.measured import PLANE_PAIRS, resonances
 from beamctl.models.plant import Plant, plant_config
 from beamctl.tools.identify import IdentificationError, IdentifySettings, identify, record
 from beamctl.tools.service import load_gain_table, service_config
-from beamctl.tools.signals import Interrupted
+from beamctl.tools.signals import Interrupted, stop_on_signals
 
 # The rig of the acceptance: its own beam differs from Table 1 (kr x0.8, modal damping x1.5,
 # E x1.02) and its stacks give 3.3 N/V where the controller believes 3.0 N/V; the strain noise of
@@ -164,8 +164,8 @@ def test_ctrl_c_ramps_the_stacks_to_bias_and_ends_in_interrupted(rig, monkeypatc
         if done > 3000:
             signal.raise_signal(signal.SIGINT)
 
-    with pytest.raises(Interrupted) as info:
-        record(cfg, table, SHORT, progress=ctrl_c)
+    with pytest.raises(Interrupted) as info, stop_on_signals() as stop:
+        record(cfg, table, SHORT, progress=ctrl_c, stop=stop)
     assert info.value.exit_status == 130
     assert np.max(np.abs(written[-200] - 75.0)) > 0.1, "the stacks were moving when Ctrl-C came"
     np.testing.assert_allclose(written[-1], 75.0, err_msg="the stacks end at bias")
