@@ -142,7 +142,7 @@ def _client(args: argparse.Namespace):
 
     workers = int(args.workers or os.cpu_count() or 1)
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
-                           dashboard_address=None)
+                           dashboard_address=":0")    # any free port: never a clash with another
     return Client(cluster), cluster
 
 
