@@ -16,9 +16,10 @@ A study file holds one ``study:`` section::
         actuators.force_constant_n_per_v: {law: uniform, low: 2.4, high: 3.6}
       linear: {max_step_n: 50, fine_step_n: 10, fine_band: 0.04}
 
-Keys: ``model.<key>`` any numeric model parameter (a list element as ``model.damping.ratios[0]``),
-the rig's own; ``io.delay_samples`` the rig's output delay in samples; ``actuators.force_constant_n_per_v``
-the rig's stacks (the controller keeps believing ``controller_force_constant_n_per_v``, default
+Keys: ``model.<key>`` any numeric model parameter (a list element as ``model.damping.ratios[0]``;
+a whole list, ``model.damping.ratios``, takes a factor on every element), the rig's own;
+``io.delay_samples`` the rig's output delay in samples; ``actuators.force_constant_n_per_v`` the rig's
+stacks (the controller keeps believing ``controller_force_constant_n_per_v``, default
 3.0); ``sample_rate_hz`` the rig's true rate; for ``kind: experiment`` also ``plant.<key>`` (bow,
 eccentricity, noise, load ramp of the simulated rig).
 
@@ -142,6 +143,8 @@ def _check_key(key: str, kind: str, source: str) -> None:
             node = node.get(part) if isinstance(node, dict) else None
         element = index[:-1]
         if isinstance(node, list) and index.endswith("]") and element.isdigit() and int(element) < len(node):
+            return
+        if isinstance(node, list) and not index:     # the whole list: a factor on every element
             return
         if isinstance(node, (int, float)) and not isinstance(node, bool) and not index:
             return
@@ -295,9 +298,11 @@ def _linear(task: Task) -> dict[str, Any]:
     table = _table(task.design)
     params: dict[str, Range] = {}
     values: dict[str, float] = {}
+    model = table.model_parameters.to_dict()
     for key, v in task.values.items():
         if key.startswith("model."):
-            params[key[6:]] = Range("value", v, v)
+            kind = "factor" if isinstance(_lookup(model, key[6:]), list) else "value"
+            params[key[6:]] = Range(kind, v, v)
             values[key[6:]] = v
         elif key == "actuators.force_constant_n_per_v":
             params[key] = Range("factor", 0.0, 10.0)
@@ -315,6 +320,14 @@ def _linear(task: Task) -> dict[str, Any]:
     return {"held_load_n": held, "critical_load_n": r.critical_load_n, "ratio": r.ratio,
             "reason": f"unstable at {r.limit.load_n:.0f} N ({r.limit.frequency_hz:.0f} Hz)"
             if r.limit.spectral_radius >= 1 else "stable to the end of the table"}
+
+
+def _lookup(node: Any, key: str) -> Any:
+    """The value at a dotted key (``[i]`` an element) of a nested mapping."""
+    base, _, index = key.partition("[")
+    for part in base.split("."):
+        node = node[part]
+    return node[int(index[:-1])] if index else node
 
 
 def _nested(key: str, value: Any) -> dict:
@@ -348,6 +361,9 @@ def _experiment(task: Task) -> dict[str, Any]:
                 values = list(node)
                 values[int(index[:-1])] = v
                 model_overrides = merge(model_overrides, _nested(base, values))
+            elif isinstance(_lookup(table.model_parameters.to_dict(), key[6:]), list):
+                base_values = _lookup(table.model_parameters.to_dict(), key[6:])
+                model_overrides = merge(model_overrides, _nested(key[6:], [x * v for x in base_values]))
             else:
                 model_overrides = merge(model_overrides, _nested(key[6:], v))
         elif key == "actuators.force_constant_n_per_v":

@@ -214,3 +214,17 @@ def test_an_experiment_sample_runs_the_load_ramp_on_its_own_rig():
         "model.damping.ratios[0]": {"law": "uniform", "low": 0.5, "high": 0.6}}}})
     row = run_task(tasks(bad)[0])
     assert np.isnan(row["ratio"]) and row["reason"].startswith("invalid rig: damping.ratios")
+
+
+def test_a_whole_list_key_scales_every_element():
+    """model.damping.ratios as a factor (box B's damping x[0.5, 2]): both ratios scale together,
+    which is what keeps the Rayleigh damping positive."""
+    from beamctl.tools.study import _linear, tasks
+
+    factor = {"law": "uniform", "low": 2.0, "high": 2.0 + 1e-9}
+    study = study_from_dict({"study": {"kind": "linear", "samples": 1, "seed": 1,
+                                       "linear": STUDY["study"]["linear"],
+                                       "parameters": {"model.damping.ratios": factor}}})
+    row = _linear(tasks(study)[0])
+    assert np.isfinite(row["ratio"]) and row["critical_load_n"] == pytest.approx(3193.5, abs=0.5), (
+        "damping does not move the critical load")
