@@ -268,22 +268,39 @@ def tasks(study: Study, done: set[tuple[int, str]] = frozenset()) -> list[Task]:
 _TABLES: dict[str, Any] = {}
 
 
-def _table(path: str):
-    """A worker reads each gain table once (checked: a changed table is refused)."""
+def _table(path: str, texts: Mapping[str, str] | None = None):
+    """A worker reads each gain table once: from ``texts`` (the tables' contents, sent by the
+    client: a remote worker needs no copy of the files) or else from the path."""
+    import tempfile
+
     from beamctl.gains.table import load_table
 
-    if path not in _TABLES:
-        _TABLES[path] = load_table(path, verify=False)
-    return _TABLES[path]
+    text = None if texts is None else texts.get(path)
+    key = path if text is None else hashlib.sha256(text.encode()).hexdigest()
+    if key not in _TABLES:
+        if text is None:
+            _TABLES[key] = load_table(path, verify=False)
+        else:
+            with tempfile.TemporaryDirectory() as tmp:
+                copy = Path(tmp) / Path(path).name
+                copy.write_text(text)
+                _TABLES[key] = load_table(copy, verify=False)
+    return _TABLES[key]
 
 
-def run_task(task: Task) -> dict[str, Any]:
+def design_texts(study: Study) -> dict[str, str]:
+    """The designs' gain tables as text, for the workers."""
+    return {d: Path(d).read_text(encoding="utf-8") for d in study.designs}
+
+
+def run_task(task: Task, texts: Mapping[str, str] | None = None) -> dict[str, Any]:
     """The row of one sample: its values, the held load, the rig's own critical load, their
     ratio and why it ended. An error of the sample itself (parameters that give no valid model)
-    is a row too, with the reason."""
+    is a row too, with the reason. ``texts``: the designs' tables (``design_texts``)."""
     row: dict[str, Any] = {"sample": task.sample, "design": task.design, **task.values}
+    table = _table(task.design, texts)          # once per worker, from the client's copy if sent
     try:
-        result = _linear(task) if task.kind == "linear" else _experiment(task)
+        result = _linear(task, table) if task.kind == "linear" else _experiment(task, table)
     except ConfigError as exc:
         result = {"held_load_n": math.nan, "critical_load_n": math.nan, "ratio": math.nan,
                   "reason": f"invalid rig: {exc}"}
@@ -291,11 +308,10 @@ def run_task(task: Task) -> dict[str, Any]:
     return row
 
 
-def _linear(task: Task) -> dict[str, Any]:
+def _linear(task: Task, table) -> dict[str, Any]:
     from beamctl.gains.robust import Box, Range, evaluate
     from beamctl.gains.schedule import GainSchedule
 
-    table = _table(task.design)
     params: dict[str, Range] = {}
     values: dict[str, float] = {}
     model = table.model_parameters.to_dict()
@@ -341,11 +357,10 @@ def _nested(key: str, value: Any) -> dict:
     return out
 
 
-def _experiment(task: Task) -> dict[str, Any]:
+def _experiment(task: Task, table) -> dict[str, Any]:
     from beamctl.config.schema import merge
     from beamctl.tools.experiment import experiment_config, run_mode
 
-    table = _table(task.design)
     scenario = merge(task.experiment, {"gains": {"table": task.design}, "experiment": {"paper_mode": False},
                                        "hal": {"sim": {"pace": "simulated"}}})
     model_overrides: dict = {}

@@ -17,7 +17,7 @@ from beamctl.config.schema import ConfigError
 from beamctl.tools import argtypes
 from beamctl.tools.outputs import check_dir, replacing, write_text
 from beamctl.tools.progress import ProgressBar
-from beamctl.tools.study import Study, Task, load_study, run_task, summarise, tasks
+from beamctl.tools.study import Study, Task, design_texts, load_study, run_task, summarise, tasks
 
 ROWS = "samples.csv"
 STUDY = "study.json"
@@ -101,7 +101,10 @@ def run_study(study: Study, out: Path, client, progress=None) -> tuple[list[dict
     total = study.samples * len(study.designs)
     start = time.monotonic()
     keys = [f"beamctl-study-{study.digest()[:12]}-{t.sample}-{study.designs.index(t.design)}" for t in todo]
-    futures = client.map(run_task, todo, key=keys, pure=False) if todo else []
+    futures = []
+    if todo:        # the tables travel once to each worker, not with every task
+        texts = client.scatter([design_texts(study)], broadcast=True)[0]
+        futures = client.map(run_task, todo, [texts] * len(todo), key=keys, pure=False)
     columns = _columns(study)
     new = 0
     try:

@@ -219,12 +219,26 @@ def test_an_experiment_sample_runs_the_load_ramp_on_its_own_rig():
 def test_a_whole_list_key_scales_every_element():
     """model.damping.ratios as a factor (box B's damping x[0.5, 2]): both ratios scale together,
     which is what keeps the Rayleigh damping positive."""
-    from beamctl.tools.study import _linear, tasks
+    from beamctl.tools.study import run_task, tasks
 
     factor = {"law": "uniform", "low": 2.0, "high": 2.0 + 1e-9}
     study = study_from_dict({"study": {"kind": "linear", "samples": 1, "seed": 1,
                                        "linear": STUDY["study"]["linear"],
                                        "parameters": {"model.damping.ratios": factor}}})
-    row = _linear(tasks(study)[0])
+    row = run_task(tasks(study)[0])
     assert np.isfinite(row["ratio"]) and row["critical_load_n"] == pytest.approx(3193.5, abs=0.5), (
         "damping does not move the critical load")
+
+
+def test_a_worker_needs_no_copy_of_the_design_files(tmp_path):
+    """The client sends the tables' contents: a design path the worker cannot read still runs."""
+    from beamctl.gains.defaults import default_table_path
+    from beamctl.tools.study import design_texts, run_task, tasks
+
+    study = study_from_dict(STUDY)
+    texts = design_texts(study)
+    task = tasks(study)[0]
+    elsewhere = "/nonexistent/on/this/worker/default.yaml"
+    moved = type(task)(**{**task.__dict__, "design": elsewhere})
+    row = run_task(moved, {elsewhere: texts[str(default_table_path())]})
+    assert row == {**run_task(task, texts), "design": elsewhere}
