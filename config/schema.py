@@ -208,6 +208,15 @@ def merge(defaults: Mapping[str, Any], overrides: Mapping[str, Any]) -> dict[str
     return merged
 
 
+def nested(key: str, value: Any) -> dict[str, Any]:
+    """The mapping a dotted key sets: ``nested("beam.radius", 4e-3)`` is ``{"beam": {"radius": 4e-3}}``
+    (to ``merge`` over a configuration)."""
+    out: Any = value
+    for part in reversed(key.split(".")):
+        out = {part: out}
+    return out
+
+
 def validate(data: Any, schema: Schema, source: str = "", prefix: str = "") -> dict[str, Any]:
     """Check ``data`` against ``schema`` and return the converted values.
 

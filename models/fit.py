@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import least_squares
 
-from beamctl.config.schema import ConfigError, merge
+from beamctl.config.schema import ConfigError, merge, nested
 from beamctl.models.analysis import eigenfrequencies, fe_frequency_response
 from beamctl.models.fe import build_model
 from beamctl.models.measured import PLANE_PAIRS, FrfData
@@ -143,13 +143,6 @@ def _flatten(d: dict, prefix: str = "") -> dict[str, Any]:
     return out
 
 
-def _nested(key: str, value: Any) -> dict:
-    out: dict = value
-    for part in reversed(key.split(".")):
-        out = {part: out}
-    return out
-
-
 def model_response(params: ModelParameters, d: FrfData, freqs_hz: np.ndarray,
                    force_constant_n_per_v: float | None = None) -> np.ndarray:
     """The model's [nf x 4 x 4] response as measurement ``d`` would see it at ``freqs_hz``: the
@@ -242,7 +235,7 @@ class Problem:
         overrides: dict = {}
         for k, v in values.items():
             if k != FORCE_CONSTANT_KEY:
-                overrides = merge(overrides, _nested(k, v))
+                overrides = merge(overrides, nested(k, v))
         return parameters_from_dict(merge(self.start.to_dict(), overrides), "fit")
 
     def residuals(self, x: np.ndarray) -> np.ndarray:

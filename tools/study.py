@@ -346,41 +346,33 @@ def _lookup(node: Any, key: str) -> Any:
     return node[int(index[:-1])] if index else node
 
 
-def _nested(key: str, value: Any) -> dict:
+def _set_model_value(model: dict, key: str, value: float) -> None:
+    """Set a drawn value in a model dict: a scalar key or a list element replaced, a whole list
+    multiplied (the key conventions of the study file)."""
     base, _, index = key.partition("[")
     parts = base.split(".")
+    node = model
+    for part in parts[:-1]:
+        node = node[part]
+    leaf = parts[-1]
     if index:
-        raise ValueError("list elements are set by _set_list")
-    out: dict = value
-    for part in reversed(parts):
-        out = {part: out}
-    return out
+        node[leaf][int(index[:-1])] = value
+    elif isinstance(node[leaf], list):
+        node[leaf] = [x * value for x in node[leaf]]
+    else:
+        node[leaf] = value
 
 
 def _experiment(task: Task, table) -> dict[str, Any]:
-    from beamctl.config.schema import merge
+    from beamctl.config.schema import merge, nested
     from beamctl.tools.experiment import experiment_config, run_mode
 
     scenario = merge(task.experiment, {"gains": {"table": task.design}, "experiment": {"paper_mode": False},
                                        "hal": {"sim": {"pace": "simulated"}}})
-    model_overrides: dict = {}
+    rig_model = table.model_parameters.to_dict()       # the design's model, the drawn values set
     for key, v in task.values.items():
         if key.startswith("model."):
-            base, _, index = key[6:].partition("[")
-            if index:
-                from beamctl.models.params import default_dict
-
-                node: Any = merge(default_dict(), model_overrides)
-                for part in base.split("."):
-                    node = node[part]
-                values = list(node)
-                values[int(index[:-1])] = v
-                model_overrides = merge(model_overrides, _nested(base, values))
-            elif isinstance(_lookup(table.model_parameters.to_dict(), key[6:]), list):
-                base_values = _lookup(table.model_parameters.to_dict(), key[6:])
-                model_overrides = merge(model_overrides, _nested(key[6:], [x * v for x in base_values]))
-            else:
-                model_overrides = merge(model_overrides, _nested(key[6:], v))
+            _set_model_value(rig_model, key[6:], v)
         elif key == "actuators.force_constant_n_per_v":
             scenario = merge(scenario, {"hal": {"sim": {"own_actuators": True,
                                                         "actuators": {"force_constant_n_per_v": v}}}})
@@ -389,9 +381,8 @@ def _experiment(task: Task, table) -> dict[str, Any]:
         elif key == "sample_rate_hz":
             raise ConfigError(key, v, "a linear study (the simulated rig runs at the table's rate)")
         else:                                   # plant.<key>
-            scenario = merge(scenario, _nested(key, v))
-    if model_overrides:
-        scenario = merge(scenario, {"plant": {"model": model_overrides}})
+            scenario = merge(scenario, nested(key, v))
+    scenario = merge(scenario, {"plant": {"model": rig_model}})
     scenario["model"] = table.model_parameters.to_dict()
     cfg, settings = experiment_config(scenario, f"sample {task.sample}")
     from beamctl.tools.service import build_plant

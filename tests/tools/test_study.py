@@ -242,3 +242,15 @@ def test_a_worker_needs_no_copy_of_the_design_files(tmp_path):
     moved = type(task)(**{**task.__dict__, "design": elsewhere})
     row = run_task(moved, {elsewhere: texts[str(default_table_path())]})
     assert row == {**run_task(task, texts), "design": elsewhere}
+
+
+def test_a_drawn_list_element_keeps_the_design_s_other_elements():
+    """An experiment sample builds its rig from the design's own model (a fitted one, say), not
+    from Table 1: drawing damping.ratios[1] leaves the design's ratios[0] as it was."""
+    from beamctl.tools.study import _set_model_value
+
+    design = {"damping": {"ratios": [0.0225, 0.00675]}, "beam": {"youngs_modulus": 77.3e9}}
+    _set_model_value(design, "damping.ratios[1]", 0.005)
+    assert design["damping"]["ratios"] == [0.0225, 0.005]
+    _set_model_value(design, "damping.ratios", 2.0)
+    assert design["damping"]["ratios"] == [0.045, 0.01], "a whole list is scaled"
