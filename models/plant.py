@@ -14,7 +14,10 @@ Axial load: the plant follows a load programme Fx(t) (the rig's quasi-static ram
 system matrix depends on Fx; it is discretised exactly (zero-order hold, matrix exponential)
 at loads on a grid of spacing 2 x ``load_tolerance``, so the load used in the dynamics
 never differs from the applied one by more than ``load_tolerance``. A new discretisation is
-computed only when the load crosses into another grid cell.
+computed only when the load crosses into another grid cell. Discretisations are shared by
+every plant of the process with the same matrices, I/O chain and sample period (a least
+recently used store of ``SHARED_CELLS`` cells, safe across threads): the runs of an experiment
+or a benchmark that share a rig discretise each cell once; ``clear_discretisations()`` empties it.
 
 Imperfection: a stress-free initial bow r0 (shape of the first buckling mode, largest
 lateral deviation ``bow.amplitude`` in direction ``bow.angle_deg`` from +y towards +z) acts
@@ -32,7 +35,9 @@ chain (no delay, no filter) is the beam alone.
 
 from __future__ import annotations
 
+import hashlib
 import math
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -92,7 +97,23 @@ _SCHEMA = {
               "seed": integer(low=0)},
 }
 
-_CACHE_SIZE = 8
+# discretisations kept per process, over all plants: two rigs' whole 260..4000 N ramps at 1 N
+# cells (a 48-state plant's cell is 22 kB: 88 MB at most)
+SHARED_CELLS = 8000
+_shared_cells: OrderedDict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = OrderedDict()
+_shared_lock = threading.Lock()
+
+
+def clear_discretisations() -> None:
+    """Forget every shared discretisation (the next step of any plant computes its own)."""
+    with _shared_lock:
+        _shared_cells.clear()
+
+
+def shared_discretisations() -> int:
+    """How many discretisations the process holds."""
+    return len(_shared_cells)
+
 # eigenvectors of the discretised plant better conditioned than this diagonalise its frequency response
 _MAX_EIGENVECTOR_CONDITION = 1e10
 N_FORCES = 4        # actuator forces (Fay,A, Faz,A, Fay,B, Faz,B); the fifth input is Fx
@@ -300,7 +321,7 @@ class Plant:
         self._state = np.zeros(n_states)
         self._next = np.zeros(n_states)
         self._forced = np.zeros(n_states)
-        self._cache: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self._fingerprint = self._digest()
         self._bin = None
         self._ad = self._bd = None
         self._strain_out = np.zeros(N_STRAINS)
@@ -337,21 +358,33 @@ class Plant:
         return delayed_zoh(a, b[:, :N_FORCES], self.sample_period, self.config.io.delay_samples,
                            b_direct=b[:, N_FORCES:])
 
+    def _digest(self) -> str:
+        """What a discretisation depends on: the reduced matrices, the I/O chain, the period
+        and the load grid (two plants with the same digest step the same system)."""
+        h = hashlib.sha256()
+        for m in (self._k_elastic, self._k_geometric, self._damping, self._input, self._strain):
+            h.update(np.ascontiguousarray(m).tobytes())
+        h.update(repr((self.config.io.to_dict(), self.sample_period, self.config.load_tolerance)).encode())
+        return h.hexdigest()
+
     def _use_load(self, axial_load: float) -> None:
         cell = 2.0 * self.config.load_tolerance
         index = round(axial_load / cell)
         if index == self._bin:
             return
-        entry = self._cache.get(index)
+        key = (self._fingerprint, index)
+        with _shared_lock:
+            entry = _shared_cells.get(key)
+            if entry is not None:
+                _shared_cells.move_to_end(key)
         if entry is None:
             zoh = self.discretise(index * cell)
             before = (zoh.b_before,) if self._fractional else ()
             entry = (np.ascontiguousarray(zoh.ad), np.hstack([zoh.b_now, *before, zoh.b_direct]))
-            self._cache[index] = entry
-            if len(self._cache) > _CACHE_SIZE:
-                self._cache.popitem(last=False)
-        else:
-            self._cache.move_to_end(index)
+            with _shared_lock:
+                _shared_cells[key] = entry
+                while len(_shared_cells) > SHARED_CELLS:
+                    _shared_cells.popitem(last=False)
         self._bin = index
         self._ad, self._bd = entry
 
@@ -404,12 +437,16 @@ class Plant:
         history[head] = forces_n
         self._head = (head + 1) % length
 
+    def _refill_noise(self) -> None:
+        """The next block of measurement noise (strains, load cell) from the seeded stream."""
+        self._noise_block = self._rng.standard_normal((4096, 5))
+        self._noise_block[:, :4] *= self.config.noise.strain
+        self._noise_block[:, 4] *= self.config.noise.load
+        self._noise_index = 0
+
     def _noise(self) -> np.ndarray:
         if self._noise_index >= len(self._noise_block):
-            self._noise_block = self._rng.standard_normal((4096, 5))
-            self._noise_block[:, :4] *= self.config.noise.strain
-            self._noise_block[:, 4] *= self.config.noise.load
-            self._noise_index = 0
+            self._refill_noise()
         row = self._noise_block[self._noise_index]
         self._noise_index += 1
         return row

@@ -1,11 +1,13 @@
 """The sampled plant: Southwell's law, exact discretisation, load tolerance, imperfections."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from beamctl.config.schema import ConfigError
 from beamctl.models import critical_load, eigenfrequencies
-from beamctl.models.plant import LoadRamp, Plant, load_plant_config, plant_config
+from beamctl.models.plant import LoadRamp, Plant, clear_discretisations, load_plant_config, plant_config
 
 ZERO = np.zeros(4)
 
@@ -81,6 +83,7 @@ def test_zero_order_hold_is_exact_whatever_the_sample_rate(paper_model):
 def test_discretisation_load_never_differs_from_the_applied_load_by_more_than_the_tolerance(paper_model):
     tol = 2.0
     cfg = plant_config({"load_tolerance": tol, "load": {"start": 260.0, "end": 1000.0, "rate": 400.0}})
+    clear_discretisations()         # discretisations are shared by the process's plants
     plant = Plant(paper_model, cfg)
     worst = 0.0
     while plant.axial_load < 1000.0:
@@ -89,6 +92,25 @@ def test_discretisation_load_never_differs_from_the_applied_load_by_more_than_th
     assert worst <= tol + 1e-9
     assert plant.discretisations == pytest.approx((1000 - 260) / (2 * tol), abs=2), (
         "one discretisation per tolerance cell crossed, none in between")
+
+
+def test_plants_of_one_rig_share_discretisations_and_step_the_same(paper_model):
+    """A second plant of the same rig discretises nothing and steps exactly as the first; a plant
+    with another I/O chain (a different system) computes its own."""
+    cfg = plant_config({"load": {"start": 260.0, "end": 400.0, "rate": 2000.0}})
+    clear_discretisations()
+    first, second = Plant(paper_model, cfg), Plant(paper_model, cfg)
+    force = np.array([0.3, -0.2, 0.1, 0.4])
+    while first.axial_load < 400.0:
+        first.step(force)
+        second.step(force)
+    assert first.discretisations > 50, "the ramp crosses many cells"
+    assert second.discretisations == 0, (
+        f"the second plant of the same rig discretised {second.discretisations} cells itself")
+    np.testing.assert_array_equal(second.displacement(), first.displacement())
+    delayed = Plant(paper_model, replace(cfg, io=replace(cfg.io, delay_samples=0.5)))
+    delayed.step(force)
+    assert delayed.discretisations >= 1, "another I/O chain is another system: no shared cell"
 
 
 def test_eccentric_load_bows_the_beam_away_from_the_load_line(paper_model):
