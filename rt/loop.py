@@ -93,7 +93,8 @@ class ControlLoop:
                  clock: Callable[[], float] = time.perf_counter,
                  sleep: Callable[[float], None] = time.sleep,
                  on_cycle: Callable[[ControlLoop], None] | None = None,
-                 stop: StopRequest | None = None) -> None:
+                 stop: StopRequest | None = None,
+                 accelerator: Callable[[ControlLoop], int] | None = None) -> None:
         self.controller = controller
         self.stop = stop
         self.hal = hal
@@ -109,6 +110,9 @@ class ControlLoop:
         self.clock = clock
         self.sleep = sleep
         self.on_cycle = on_cycle
+        # offline runs only (tools/simkernel.py): offered each cycle, it runs the cycles it can
+        # with the same arithmetic and returns how many; 0 leaves the next cycle to the loop
+        self.accelerator = accelerator
         self.timing = LoopTiming()
         self.period = controller.period
         self.cycles = 0
@@ -224,6 +228,7 @@ class ControlLoop:
         self._last_sample = clock()         # the arming sample
         previous_start = None
         stop = self.stop
+        accelerator = self.accelerator
         while True:
             if stop is not None and stop.reason:
                 if stop.signal_name:
@@ -233,6 +238,9 @@ class ControlLoop:
                 c.request_stop()
             if self.max_cycles is not None and self.cycles >= self.max_cycles:
                 self.request_stop("cycle limit")
+            if accelerator is not None and accelerator(self):
+                previous_start = None       # the accelerated cycles have no timing of their own
+                continue
             t0 = clock()
             if previous_start is not None:
                 timing.cycle.record(t0 - previous_start)   # start to start

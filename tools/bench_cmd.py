@@ -206,6 +206,67 @@ def sim_realtime_factor() -> dict:
     return {"factor": trace.plant_s / trace.wall_s, "plant_s": trace.plant_s, "wall_s": trace.wall_s}
 
 
+def offline_timing(repeats: int = 3) -> dict:
+    """The default experiment's controlled run (70 s ramp, shipped LQG at 6000 Hz, no
+    telemetry) through the loop and through the compiled kernel, alternately in one process:
+    microseconds per simulated sample of each, the kernel with the plant's discretisations
+    computed afresh (cold) and shared from the run before (warm), their ratios per round, and
+    how far the two runs' results differ."""
+    import numpy as np
+
+    from beamctl.models.plant import clear_discretisations
+    from beamctl.tools import simkernel
+    from beamctl.tools.experiment import experiment_config, run_mode, summarise
+    from beamctl.tools.service import load_gain_table
+
+    cfg, settings = experiment_config()
+    table = load_gain_table(cfg)
+    start = time.perf_counter()
+    simkernel.kernel()          # numba compiles (or loads its disk cache) once per process
+    compile_s = time.perf_counter() - start
+
+    def per_sample(engine: str, cold: bool):
+        if cold:
+            clear_discretisations()
+        trace = run_mode("interpolate", cfg, settings, table, engine=engine)
+        return trace.wall_s / trace.cycles * 1e6, trace
+
+    rounds = []
+    for _ in range(repeats):
+        loop_us, loop_trace = per_sample("loop", cold=True)
+        cold_us, kernel_trace = per_sample("kernel", cold=True)
+        warm_us, _ = per_sample("kernel", cold=False)
+        a, b = loop_trace.arrays(), kernel_trace.arrays()
+        same = a["load_n"].shape == b["load_n"].shape
+        rounds.append({
+            "loop_us": loop_us, "kernel_cold_us": cold_us, "kernel_warm_us": warm_us,
+            "ratio_cold": loop_us / cold_us, "ratio_warm": loop_us / warm_us,
+            "kernel_share": kernel_trace.kernel_cycles / kernel_trace.cycles,
+            "same_samples": bool(same),
+            "max_deflection_difference_m": float(np.max(np.abs(a["deflection_m"] - b["deflection_m"])))
+            if same else math.inf,
+            "held_load_n": (summarise(loop_trace, "")["load_at_1.0mm_N"],
+                            summarise(kernel_trace, "")["load_at_1.0mm_N"]),
+            "cycles": kernel_trace.cycles})
+    med = {key: float(np.median([r[key] for r in rounds]))
+           for key in ("loop_us", "kernel_cold_us", "kernel_warm_us", "ratio_cold", "ratio_warm")}
+    return {"rounds": rounds, "median": med, "compile_or_cache_load_s": compile_s}
+
+
+def print_offline(result: dict) -> None:
+    for k, r in enumerate(result["rounds"], 1):
+        print(f"round {k}: loop {r['loop_us']:.2f} us/sample, kernel {r['kernel_cold_us']:.2f} (cold) / "
+              f"{r['kernel_warm_us']:.2f} (warm) us/sample: x{r['ratio_cold']:.1f} / x{r['ratio_warm']:.1f}; "
+              f"{r['cycles']} samples, {100 * r['kernel_share']:.1f} % in the kernel; held to 1 mm at "
+              f"{r['held_load_n'][0]:.1f} / {r['held_load_n'][1]:.1f} N, largest deflection difference "
+              f"{r['max_deflection_difference_m']:.1e} m")
+    m = result["median"]
+    print(f"median over {len(result['rounds'])} rounds: loop {m['loop_us']:.2f} us/sample, kernel "
+          f"{m['kernel_cold_us']:.2f} (cold) / {m['kernel_warm_us']:.2f} (warm); "
+          f"ratio x{m['ratio_cold']:.1f} / x{m['ratio_warm']:.1f} "
+          f"(numba compile or cache load {result['compile_or_cache_load_s']:.1f} s)")
+
+
 def gains_build_time() -> float:
     """Seconds to build the default table: 81 LQR designs and 161 closed-loop checks."""
     from beamctl.gains.build import build_table
@@ -224,10 +285,26 @@ def add_parser(sub) -> None:
     p = sub.add_parser("bench", help="measure the control step and the other quoted figures")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--steps", type=steps, default=50_000, help="control steps to time (default 50000)")
+    p.add_argument("--offline", action="store_true",
+                   help="only the offline simulation: the experiment's run through the loop and the "
+                        "compiled kernel, per-sample cost and ratio (needs numba)")
+    p.add_argument("--repeat", type=steps, default=3, help="rounds of --offline (default 3)")
     p.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.offline:
+        from beamctl.config.schema import ConfigError
+        from beamctl.tools import simkernel
+
+        if not simkernel.available():
+            raise ConfigError("--offline", "numba missing", "numba installed: pip install 'beamctl[fast]'")
+        result = offline_timing(args.repeat)
+        if args.json:
+            print(json.dumps(result, indent=1))
+        else:
+            print_offline(result)
+        return 0
     result = {"step_us": step_timing(args.steps)}
     lat = can_latency()
     result["can_latency_us"] = {k: lat[k] for k in ("p50", "p99", "p99.9", "max")}

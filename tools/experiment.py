@@ -41,7 +41,6 @@ from beamctl.models.analysis import lateral_displacements
 from beamctl.models.plant import plant_config
 from beamctl.rt.controller import Controller
 from beamctl.rt.loop import ControlLoop, StopRequest
-from beamctl.rt.safety import Fault
 from beamctl.rt.telemetry import TelemetryWriter
 from beamctl.tools.service import (
     ServiceConfig,
@@ -91,6 +90,9 @@ class RunTrace:
     end: str = ""
     fault: str = ""
     telemetry: str = ""
+    engine: str = "loop"
+    cycles: int = 0
+    kernel_cycles: int = 0        # of ``cycles``, those the compiled kernel ran
 
     def arrays(self) -> dict:
         return {k: np.asarray(v) for k, v in self.__dict__.items() if isinstance(v, list)}
@@ -166,48 +168,45 @@ def experiment_tables(cfg: ServiceConfig, settings: dict) -> dict[str, GainTable
     return {mode: paper_table(cfg) if mode == "paper" else shipped for mode in modes}
 
 
+ENGINES = ("auto", "loop", "kernel")
+
+
+def check_engine(engine: str, telemetry: bool = False) -> str:
+    """The engine a run will use: ``loop`` (every cycle through ``ControlLoop``) or ``kernel``
+    (tools/simkernel.py runs the uneventful cycles, the loop the rest). ``auto`` takes the
+    kernel where numba is installed and no telemetry is asked for."""
+    from beamctl.tools import simkernel
+
+    if engine not in ENGINES:
+        raise ConfigError("engine", engine, f"one of {', '.join(ENGINES)}")
+    if engine == "auto":
+        return "kernel" if simkernel.available() and not telemetry else "loop"
+    if engine == "kernel":
+        if telemetry:
+            raise ConfigError("engine", engine, "'loop' or 'auto' with telemetry: the kernel records none")
+        if not simkernel.available():
+            raise ConfigError("engine", engine, "'loop' or 'auto': the kernel needs numba "
+                                                "(pip install 'beamctl[fast]')")
+    return engine
+
+
 def run_mode(mode: str, cfg: ServiceConfig, settings: dict, table: GainTable,
-             telemetry_dir: Path | None = None, progress=None, stop: StopRequest | None = None) -> RunTrace:
+             telemetry_dir: Path | None = None, progress=None, stop: StopRequest | None = None,
+             engine: str = "auto") -> RunTrace:
     """One load ramp with ``table``; full-rate telemetry into ``telemetry_dir/telemetry_<mode>.btl``
-    if given."""
+    if given. ``engine``: see ``check_engine``; both give the same run."""
+    from beamctl.tools.simkernel import Accelerator, RunMonitor
+
+    engine = check_engine(engine, telemetry_dir is not None)
     controller_cfg = replace(cfg.controller, pacing="sample",
                              anti_windup=cfg.controller.anti_windup if mode == "interpolate" else False)
     plant = build_plant(cfg, table)
     hal = SimBackend(plant, plant_geometry(cfg), pace="simulated")
     controller = Controller(table, controller_cfg)
-    deflection = Deflection(build_model(cfg.model))
+    monitor = RunMonitor(controller, plant, Deflection(build_model(cfg.model)), settings["deflection_limit"],
+                         plant.config.load.duration(), decimate=DECIMATE, progress=progress, label=mode)
     trace = RunTrace(mode)
-    limit = settings["deflection_limit"]
-    ramp = plant.config.load
-    end_time = ramp.duration()
-    counter = {"n": 0}
-
-    def monitor(loop: ControlLoop) -> None:
-        counter["n"] += 1
-        if trace.end or counter["n"] % DECIMATE:    # after its end the run is over: not recorded
-            return
-        d, dy, dz = deflection(controller.q)
-        v = controller.voltages
-        trace.load_n.append(plant.axial_load)
-        trace.deflection_m.append(d)
-        trace.deflection_y_m.append(dy)
-        trace.deflection_z_m.append(dz)
-        trace.true_deflection_m.append(plant.deflection()[0])
-        trace.v_min.append(float(v.min()))
-        trace.v_max.append(float(v.max()))
-        trace.state.append(int(controller.state))
-        if counter["n"] % (50 * DECIMATE) == 0:
-            trace.voltages.append((plant.axial_load, *v.tolist()))
-            if progress:
-                progress(min(plant.time / end_time, 1.0), f"{mode} {plant.axial_load:4.0f} N")
-        if d > limit:
-            trace.end = f"deflection passed {limit * 1e3:g} mm at {plant.axial_load:.0f} N"
-        elif plant.time >= end_time:
-            trace.end = f"ramp ended at {plant.axial_load:.0f} N"
-        if trace.end:
-            supervisor = controller.supervisor
-            trace.fault = supervisor.reason() if supervisor.fault != Fault.NONE else ""
-            loop.request_stop(trace.end)
+    accelerator = Accelerator(controller, hal, monitor) if engine == "kernel" else None
 
     hal.open()
     telemetry = None
@@ -218,7 +217,7 @@ def run_mode(mode: str, cfg: ServiceConfig, settings: dict, table: GainTable,
                                                        meta={"mode": mode, "scenario": cfg.source}).start()
             trace.telemetry = str(telemetry.path)
         loop = ControlLoop(controller, hal, telemetry=telemetry, stop_on_fault=False, stop=stop,
-                           start=(mode != "uncontrolled"), on_cycle=monitor)
+                           start=(mode != "uncontrolled"), on_cycle=monitor, accelerator=accelerator)
         result = loop.run(acquire_rt=False)
     finally:
         hal.close()
@@ -228,6 +227,13 @@ def run_mode(mode: str, cfg: ServiceConfig, settings: dict, table: GainTable,
         raise Interrupted(result.signal_received, f"the {mode} run")
     trace.wall_s = time.perf_counter() - start
     trace.plant_s = plant.time
+    for name, values in monitor.arrays().items():
+        setattr(trace, name, values.tolist())
+    trace.voltages = monitor.voltages
+    trace.end, trace.fault = monitor.end, monitor.fault
+    trace.engine = engine
+    trace.cycles = result.cycles
+    trace.kernel_cycles = accelerator.kernel_cycles if accelerator is not None else 0
     return trace
 
 
@@ -277,7 +283,7 @@ def summarise(trace: RunTrace, design: str) -> dict:
 
 def run_experiment(cfg: ServiceConfig, settings: dict, tables: dict[str, GainTable],
                    telemetry_dir: Path | None = None, progress=None,
-                   stop: StopRequest | None = None) -> tuple[dict, dict[str, RunTrace]]:
+                   stop: StopRequest | None = None, engine: str = "auto") -> tuple[dict, dict[str, RunTrace]]:
     """Run every mode of ``tables`` (``experiment_tables``) in turn; return the summary and the
     runs' traces. Full-rate telemetry of each run goes into ``telemetry_dir`` if given."""
     modes = tuple(tables)
@@ -286,7 +292,7 @@ def run_experiment(cfg: ServiceConfig, settings: dict, tables: dict[str, GainTab
         def step(fraction: float, label: str, k=k) -> None:
             if progress:
                 progress(round(1000 * (k + fraction) / len(modes)), 1000, f"run {k + 1}/{len(modes)} {label}")
-        traces[mode] = run_mode(mode, cfg, settings, tables[mode], telemetry_dir, step, stop)
+        traces[mode] = run_mode(mode, cfg, settings, tables[mode], telemetry_dir, step, stop, engine)
     if progress:
         progress(1000, 1000, "done")
     io = plant_settings(cfg, tables[modes[0]]).io
@@ -307,4 +313,5 @@ def run_experiment(cfg: ServiceConfig, settings: dict, tables: dict[str, GainTab
                            "load_rate_N_per_s": cfg.plant["load"]["rate"],
                            "deflection_limit_mm": 1e3 * settings["deflection_limit"]}
     summary["sim_realtime_factor"] = plant_s / wall_s if wall_s else None
+    summary["engine"] = {mode: trace.engine for mode, trace in traces.items()}
     return summary, traces

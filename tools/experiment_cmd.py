@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 from beamctl.tools import plots
-from beamctl.tools.experiment import experiment_tables, load_experiment_config, run_experiment
+from beamctl.tools.experiment import check_engine, experiment_tables, load_experiment_config, run_experiment
 from beamctl.tools.outputs import check_dir, write_text
 from beamctl.tools.progress import ProgressBar
 from beamctl.tools.signals import stop_on_signals
@@ -31,6 +31,10 @@ def add_parser(sub) -> None:
                    help="also record each run's full-rate telemetry into the report folder "
                         "(telemetry_<mode>.btl, about 40 MB a run with the default scenario)")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    p.add_argument("--engine", choices=("auto", "loop", "kernel"), default="auto",
+                   help="how the runs are simulated: the compiled kernel for the uneventful cycles "
+                        "(needs numba, no --telemetry), every cycle through the control loop, or auto "
+                        "(the kernel where it can run; default); the results are the same")
     p.add_argument("--no-paper", action="store_true", help="skip the run with the paper's 500 N switching")
     p.set_defaults(run=run)
 
@@ -76,6 +80,7 @@ def run(args: argparse.Namespace) -> int:
     if args.no_paper:
         settings = {**settings, "paper_mode": False}
     out = check_dir(args.out, "--out")
+    check_engine(args.engine, args.telemetry)
     tables = experiment_tables(cfg, settings)
     # The folder holds one experiment's report: a previous one's figures and summaries go
     # now, so that a run cut short leaves nothing that could be taken for its result.
@@ -83,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     start = time.monotonic()
     with ProgressBar("experiment") as bar, stop_on_signals() as stop:
         summary, traces = run_experiment(cfg, settings, tables, out if args.telemetry else None,
-                                         progress=bar, stop=stop)
+                                         progress=bar, stop=stop, engine=args.engine)
         bar.close()
     summary["wall_time_s"] = time.monotonic() - start
     table = summary_table(summary)
