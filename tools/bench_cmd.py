@@ -24,7 +24,7 @@ from beamctl.hal.budget import bus_budget
 from beamctl.hal.dbc import Contract
 from beamctl.rt.config import controller_config
 from beamctl.rt.controller import Controller
-from beamctl.tools.argtypes import steps
+from beamctl.tools.argtypes import number, steps
 from beamctl.tools.signals import Interrupted, stop_on_signals
 
 EMULATOR_PRIORITY = 70         # SCHED_FIFO of the emulator's process (the controller's is 80)
@@ -288,7 +288,7 @@ def add_parser(sub) -> None:
     p.add_argument("--offline", action="store_true",
                    help="only the offline simulation: the experiment's run through the loop and the "
                         "compiled kernel, per-sample cost and ratio (needs numba)")
-    p.add_argument("--repeat", type=steps, default=3, help="rounds of --offline (default 3)")
+    p.add_argument("--repeat", type=number(low=1, integer=True), default=3, help="rounds of --offline (default 3)")
     p.set_defaults(run=run)
 
 
