@@ -288,7 +288,8 @@ def add_parser(sub) -> None:
     p.add_argument("--offline", action="store_true",
                    help="only the offline simulation: the experiment's run through the loop and the "
                         "compiled kernel, per-sample cost and ratio (needs numba)")
-    p.add_argument("--repeat", type=number(low=1, integer=True), default=3, help="rounds of --offline (default 3)")
+    p.add_argument("--repeat", type=number(low=1, integer=True), default=3,
+                   help="rounds of --offline (default 3)")
     p.set_defaults(run=run)
 
 
