@@ -25,6 +25,11 @@ The loop looks at it every cycle: the voltages ramp to bias, telemetry is flushe
 returns normally; ``RunResult.signal_received`` names the signal, so that the caller decides
 what it means (the service: the operator's stop; a simulated experiment: cut short). Without a
 request, a KeyboardInterrupt leaves the loop through the emergency ramp to bias.
+
+Offline runs only: an ``accelerator`` (tools/simkernel.py) is offered each cycle before the
+read and may run uneventful cycles of a simulated run in compiled code with the same
+arithmetic; it returns how many, and leaves every cycle with an event (a fault, a stop, a
+command, a re-arm) to the loop.
 """
 
 from __future__ import annotations

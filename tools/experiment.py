@@ -93,6 +93,7 @@ class RunTrace:
     engine: str = "loop"
     cycles: int = 0
     kernel_cycles: int = 0        # of ``cycles``, those the compiled kernel ran
+    plant_critical_load_n: float = math.nan     # the simulated rig's own Fx,cr
 
     def arrays(self) -> dict:
         return {k: np.asarray(v) for k, v in self.__dict__.items() if isinstance(v, list)}
@@ -234,6 +235,7 @@ def run_mode(mode: str, cfg: ServiceConfig, settings: dict, table: GainTable,
     trace.engine = engine
     trace.cycles = result.cycles
     trace.kernel_cycles = accelerator.kernel_cycles if accelerator is not None else 0
+    trace.plant_critical_load_n = plant.critical_load
     return trace
 
 

@@ -385,10 +385,8 @@ def _experiment(task: Task, table) -> dict[str, Any]:
     scenario = merge(scenario, {"plant": {"model": rig_model}})
     scenario["model"] = table.model_parameters.to_dict()
     cfg, settings = experiment_config(scenario, f"sample {task.sample}")
-    from beamctl.tools.service import build_plant
-
     trace = run_mode("interpolate", cfg, settings, table)
-    critical = build_plant(cfg, table).critical_load
+    critical = trace.plant_critical_load_n
     held = trace.load_n[-1] if trace.load_n else math.nan
     return {"held_load_n": float(held), "critical_load_n": float(critical), "ratio": float(held) / critical,
             "reason": trace.fault or trace.end}
