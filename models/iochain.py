@@ -312,6 +312,15 @@ def delayed_zoh(a: np.ndarray, b: np.ndarray, period: float, delay_samples: floa
     n = a.shape[0]
     direct = np.zeros((n, 0)) if b_direct is None else b_direct
     both = np.hstack([b, direct])
+    if fraction == 0.5:
+        # half a sample (the shipped chain's delay): one exponential over half the period gives
+        # both halves, exp(A T) = E E and int_0^T = G + E G
+        e_half, g_half = _gamma(a, both, 0.5 * period)
+        ad, gamma = e_half @ e_half, g_half + e_half @ g_half
+        g_full, g_direct = gamma[:, :b.shape[1]], gamma[:, b.shape[1]:]
+        b_now = g_half[:, :b.shape[1]]
+        return DelayedZOH(ad=ad, b_now=b_now, b_before=g_full - b_now, b_direct=g_direct, whole=whole,
+                          fraction=fraction)
     ad, gamma = _gamma(a, both, period)
     g_full, g_direct = gamma[:, :b.shape[1]], gamma[:, b.shape[1]:]
     if fraction == 0.0:

@@ -288,7 +288,10 @@ class Plant:
 
         # the I/O chain: state [reconstruction filter, beam (q, q'), anti-aliasing filter]
         io = config.io
-        a, b, c, d = self.augmented(0.0)        # C, D and the filters' rows do not depend on Fx
+        a, b, c, d = self._with_filters(0.0)    # C, D and the filters' rows do not depend on Fx
+        for m in (b, c, d):
+            m.setflags(write=False)
+        self._augmented0 = (a, b, c, d)
         n_states = a.shape[0]
         n_aa = 0 if io.anti_alias is None else N_STRAINS * io.anti_alias.state_space()[0].shape[0]
         n_rec = n_states - 2 * n - n_aa
@@ -343,12 +346,21 @@ class Plant:
         b = np.vstack([np.zeros((n, 5)), self._input])
         return a, b
 
-    def augmented(self, axial_load: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The beam with the I/O chain's filters in continuous time (A, B, C, D): inputs the 4
-        forces (through the reconstruction filter) and Fx, outputs the 4 measured strains."""
+    def _with_filters(self, axial_load: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         a, b = self.continuous(axial_load)
         c = np.hstack([self._strain, np.zeros_like(self._strain)])
         return with_filters(a, b, c, self.config.io, N_FORCES)
+
+    def augmented(self, axial_load: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The beam with the I/O chain's filters in continuous time (A, B, C, D): inputs the 4
+        forces (through the reconstruction filter) and Fx, outputs the 4 measured strains.
+        Only the beam's stiffness block depends on Fx: the rest is assembled once (the filters
+        place the beam's matrix unchanged, so this is the same matrix entry for entry)."""
+        a0, b, c, d = self._augmented0
+        a = a0.copy()
+        n, first = self.n_coordinates, self._q.start
+        a[first + n:first + 2 * n, first:first + n] = -(self._k_elastic - axial_load * self._k_geometric)
+        return a, b, c, d
 
     def discretise(self, axial_load: float) -> DelayedZOH:
         """Exact discretisation at ``axial_load``: zero-order hold, the chain's delay on the

@@ -84,12 +84,14 @@ def _run_cycles(f, k, lay, budget, state, nxt, ad, bd, c_meas, meas_lo, inputs, 
     i_q, i_u, i_v = lay[L_Q], lay[L_U], lay[L_V]
     m_sig = 12 + n_x
     s = scratch[0:m_sig]
-    tmp = scratch[m_sig:m_sig + 2 * n_x + 8]
+    tmp = scratch[m_sig:m_sig + 2 * n_x]
     y = scratch[m_sig + 2 * n_x + 8:m_sig + 2 * n_x + 12]
     u = scratch[m_sig + 2 * n_x + 12:m_sig + 2 * n_x + 16]
     dxi = scratch[m_sig + 2 * n_x + 16:m_sig + 2 * n_x + 20]
     target = scratch[m_sig + 2 * n_x + 20:m_sig + 2 * n_x + 26]
     rig_f = scratch[m_sig + 2 * n_x + 26:m_sig + 2 * n_x + 30]
+    tmp_out = scratch[m_sig + 2 * n_x + 30:m_sig + 2 * n_x + 38]
+    forced = scratch[m_sig + 2 * n_x + 38:m_sig + 2 * n_x + 38 + n_states]
     running = k[K_RUNNING] == 1
     paper = k[K_PAPER] == 1
     n_loads = loads.shape[0]
@@ -160,11 +162,11 @@ def _run_cycles(f, k, lay, budget, state, nxt, ad, bd, c_meas, meas_lo, inputs, 
                     acc = 0.0
                     for m in range(4):
                         acc += int_blocks[index, j, m] * dxi[m]
-                    tmp[j] = acc
-                du0 = w0 * tmp[0] + w1 * tmp[4]
-                du1 = w0 * tmp[1] + w1 * tmp[5]
-                du2 = w0 * tmp[2] + w1 * tmp[6]
-                du3 = w0 * tmp[3] + w1 * tmp[7]
+                    tmp_out[j] = acc
+                du0 = w0 * tmp_out[0] + w1 * tmp_out[4]
+                du1 = w0 * tmp_out[1] + w1 * tmp_out[5]
+                du2 = w0 * tmp_out[2] + w1 * tmp_out[6]
+                du3 = w0 * tmp_out[3] + w1 * tmp_out[7]
                 u0, u1, u2, u3 = buffer[i_u], buffer[i_u + 1], buffer[i_u + 2], buffer[i_u + 3]
                 held = ((scale_a < 1.0 and du0 * u0 + du1 * u1 > 0.0)
                         or (scale_b < 1.0 and du2 * u2 + du3 * u3 > 0.0))
@@ -176,13 +178,9 @@ def _run_cycles(f, k, lay, budget, state, nxt, ad, bd, c_meas, meas_lo, inputs, 
                 for m in range(4):
                     s[4 + m] = buffer[i_xi + m] + dxi[m]
             # -- u = -(C x_c + D y) - Ki xi ---------------------------------------------------------
-            for j in range(8):
-                acc = 0.0
-                for m in range(m_sig):
-                    acc += out_blocks[index, j, m] * s[m]
-                tmp[j] = acc
+            np.dot(out_blocks[index], s, tmp_out)
             for j in range(4):
-                u[j] = w0 * tmp[j] + w1 * tmp[4 + j]
+                u[j] = w0 * tmp_out[j] + w1 * tmp_out[4 + j]
             # -- allocation (rt/allocation.py, scale mode) ---------------------------------------------
             for support in range(2):
                 fy, fz = u[2 * support], u[2 * support + 1]
@@ -249,11 +247,7 @@ def _run_cycles(f, k, lay, budget, state, nxt, ad, bd, c_meas, meas_lo, inputs, 
                     acc += ctl_force[j, m] * (buffer[i_v + m] - bias[m])
                 buffer[i_applied + j] = acc
             # x_c = A x_c + B y + E u_applied over the committed signals
-            for j in range(2 * n_x):
-                acc = 0.0
-                for m in range(m_sig):
-                    acc += upd_blocks[index, j, m] * buffer[sig + m]
-                tmp[j] = acc
+            np.dot(upd_blocks[index], buffer[sig:sig + m_sig], tmp)
             for j in range(n_x):
                 buffer[n_record + j] = w0 * tmp[j] + w1 * tmp[n_x + j]
             k[K_SATURATED] = k[K_SATURATED] + 1 if saturated else 0
@@ -313,16 +307,10 @@ def _run_cycles(f, k, lay, budget, state, nxt, ad, bd, c_meas, meas_lo, inputs, 
             for j in range(4):
                 inputs[j] = rig_f[j]
         inputs[n_inputs - 1] = f[F_LOAD]
+        np.dot(ad, state, nxt)
+        np.dot(bd, inputs, forced)
         for j in range(n_states):
-            acc = 0.0
-            for m in range(n_states):
-                acc += ad[j, m] * state[m]
-            acc2 = 0.0
-            for m in range(n_inputs):
-                acc2 += bd[j, m] * inputs[m]
-            nxt[j] = acc + acc2
-        for j in range(n_states):
-            state[j] = nxt[j]
+            state[j] = nxt[j] + forced[j]
         t_new = t_s + f[F_PERIOD]
         f[F_TIME] = t_new
         if t_new <= f[F_RAMP_HOLD]:
@@ -400,10 +388,14 @@ def kernel():
         except ImportError as exc:
             raise ImportError("the compiled simulation kernel needs numba: "
                               "pip install 'beamctl[fast]'") from exc
+        # reassociation lets the compiler split each dot product's sum into vector lanes (the
+        # strict left-to-right sum is a chain of dependent adds, several times slower); NaN and
+        # infinity keep their IEEE meaning (the checks of a sample rely on it)
+        flags = {"reassoc", "contract"}
         try:
-            _kernel = numba.njit(cache=True, nogil=True)(_run_cycles)
+            _kernel = numba.njit(cache=True, nogil=True, fastmath=flags)(_run_cycles)
         except Exception:           # a read-only install: compile per process
-            _kernel = numba.njit(cache=False, nogil=True)(_run_cycles)
+            _kernel = numba.njit(cache=False, nogil=True, fastmath=flags)(_run_cycles)
     return _kernel
 
 
@@ -446,7 +438,7 @@ class Accelerator:
         self._buffer = c.record.base if c.record.base is not None else c.record
         self._n_record = ctl.N_COLUMNS
         n_x = c.compensator_state.shape[0]
-        self._scratch = np.zeros(12 + n_x + 2 * n_x + 8 + 30)
+        self._scratch = np.zeros(12 + n_x + 2 * n_x + 8 + 38 + hal.plant.n_states)
         self._rig_force = np.ascontiguousarray(hal._force_matrix)
         self._rig_bias = np.ascontiguousarray(hal._bias)
         plant = self.plant
