@@ -427,18 +427,14 @@ class Accelerator:
         self.monitor = monitor
         self.kernel_cycles = 0
         c = controller
-        sched = c.schedule
         alloc = c.allocator
         self._layout = layout()
-        self._out_blocks = np.ascontiguousarray(np.stack(sched._output_blocks))
-        self._upd_blocks = np.ascontiguousarray(np.stack(sched._update_blocks))
-        self._int_blocks = np.ascontiguousarray(np.stack(sched._integral_blocks))
-        self._loads = np.asarray(sched._loads, dtype=float)
+        self._f = np.zeros(N_F)
+        self._k = np.zeros(N_K, dtype=np.int64)
         self._coef = np.asarray(alloc._coef, dtype=float)
-        self._buffer = c.record.base if c.record.base is not None else c.record
         self._n_record = ctl.N_COLUMNS
-        n_x = c.compensator_state.shape[0]
-        self._scratch = np.zeros(12 + n_x + 2 * n_x + 8 + 38 + hal.plant.n_states)
+        self._schedule = None
+        self._bind_table()
         self._rig_force = np.ascontiguousarray(hal._force_matrix)
         self._rig_bias = np.ascontiguousarray(hal._bias)
         plant = self.plant
@@ -448,20 +444,15 @@ class Accelerator:
         else:
             self._vy = self._vz = np.zeros((1, 4))
         self._lateral = np.ascontiguousarray(plant._lateral)
-        self._f = np.zeros(N_F)
-        self._k = np.zeros(N_K, dtype=np.int64)
         settings = c.safety
         f, k = self._f, self._k
         f[F_PERIOD] = plant.sample_period
-        f[F_ALPHA], f[F_HALF_BAND] = sched._alpha, sched._half_band
-        f[F_FIRST], f[F_LAST] = sched._first, sched._last
         f[F_LOAD_LOW], f[F_LOAD_HIGH] = settings._load_low, settings._load_high
         f[F_CELL] = 2.0 * plant.config.load_tolerance
         f[F_V_MIN], f[F_V_MAX], f[F_V_MID] = alloc.min_voltage_v, alloc.max_voltage_v, alloc.mid_voltage_v
         f[F_SPAN], f[F_SPAN_FITS] = alloc.voltage_span_v, alloc._span_fits
         k[K_START_SAMPLES] = c._start_samples
         k[K_SAT_LIMIT] = settings._saturation_limit
-        k[K_PAPER] = 1 if sched._paper else 0
         k[K_ANTI_WINDUP] = 1 if c._anti_windup else 0
         k[K_FRACTIONAL] = 1 if plant._fractional else 0
         k[K_DELAYED] = 1 if plant._delayed else 0
@@ -473,6 +464,23 @@ class Accelerator:
         else:
             k[K_DECIMATE] = k[K_CALLBACK_EVERY] = 1
             f[F_LIMIT] = f[F_END_TIME] = math.inf
+
+    def _bind_table(self) -> None:
+        """The arrays of the controller's gain table (again after an operator's swap)."""
+        c = self.controller
+        sched = c.schedule
+        self._schedule = sched
+        self._out_blocks = np.ascontiguousarray(np.stack(sched._output_blocks))
+        self._upd_blocks = np.ascontiguousarray(np.stack(sched._update_blocks))
+        self._int_blocks = np.ascontiguousarray(np.stack(sched._integral_blocks))
+        self._loads = np.asarray(sched._loads, dtype=float)
+        self._buffer = c.record.base if c.record.base is not None else c.record
+        n_x = c.compensator_state.shape[0]
+        self._scratch = np.zeros(12 + n_x + 2 * n_x + 8 + 38 + self.plant.n_states)
+        f = self._f
+        f[F_ALPHA], f[F_HALF_BAND] = sched._alpha, sched._half_band
+        f[F_FIRST], f[F_LAST] = sched._first, sched._last
+        self._k[K_PAPER] = 1 if sched._paper else 0
 
     def eligible(self, loop) -> bool:
         """Whether the next cycles are the kernel's kind: sample pacing on the simulated sim
@@ -502,6 +510,8 @@ class Accelerator:
         if not self.eligible(loop):
             return 0
         c, hal, plant, monitor = self.controller, self.hal, self.plant, self.monitor
+        if c.schedule is not self._schedule:
+            self._bind_table()
         sched, alloc, safety = c.schedule, c.allocator, c.safety
         f, k = self._f, self._k
         state = c.supervisor.state
