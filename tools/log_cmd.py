@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import sys
 from pathlib import Path
 
@@ -56,7 +58,9 @@ def run_export(args: argparse.Namespace) -> int:
     with TelemetryReader(args.file) as reader:
         header = reader.header
     try:
-        with replacing(out) as temp:
+        # asammdf prints its read rate to stdout when a block takes over 10 s to load: stdout
+        # carries this command's result alone
+        with replacing(out) as temp, contextlib.redirect_stdout(io.StringIO()):
             rows = recordings.export(args.file, temp, args.to)
     except OSError as exc:
         raise OutputPathError(what, out, (exc.strerror or str(exc)).lower()) from None

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from beamctl.rt.controller import code_labels, column_unit, flag_labels
-from beamctl.rt.telemetry import TelemetryReader
+from beamctl.rt.telemetry import TelemetryError, TelemetryReader
 from beamctl.tools.extras import require
 
 FORMATS = {"mdf": ".mf4", "h5": ".h5", "mat73": ".mat", "mat": ".mat", "csv": ".csv"}
@@ -283,11 +283,9 @@ def _write_mat(reader: TelemetryReader, d: Description, out: Path, chunk_rows: i
 
     n = reader.rows
     if 8 * n >= MAT5_VARIABLE_BYTES:
-        from beamctl.rt.telemetry import TelemetryError
-
         raise TelemetryError(f"{reader.path}: {n} rows make columns of {8 * n / 2 ** 30:.1f} GiB, more than "
                              f"MATLAB v5 holds in a variable (2 GiB): export with --to mat73")
-    _check_mat_names(d)
+    _check_mat_names(reader, d)
     with open(out, "wb") as fh:
         for group in _column_groups(n, len(d.columns)):
             columns = {d.columns[i]: np.empty((n, 1)) for i in group}
@@ -301,10 +299,11 @@ def _write_mat(reader: TelemetryReader, d: Description, out: Path, chunk_rows: i
         scipy.io.savemat(fh, _mat_metadata(d), do_compression=True)
 
 
-def _check_mat_names(d: Description) -> None:
+def _check_mat_names(reader: TelemetryReader, d: Description) -> None:
     clash = sorted(set(d.columns) & set(MAT_VARIABLES))
     if clash:
-        raise ValueError(f"a column named {clash[0]!r} clashes with a variable of the MATLAB export")
+        raise TelemetryError(f"{reader.path}: its column {clash[0]!r} has the name of a variable the MATLAB "
+                             f"export adds ({', '.join(MAT_VARIABLES)}): export with --to h5 or mdf")
 
 
 MAT73_HEADER_TEXT = "MATLAB 7.3 MAT-file, Platform: {platform}, Created on: {date} HDF5 schema 1.00 ."
@@ -359,7 +358,7 @@ def _write_mat73(reader: TelemetryReader, d: Description, out: Path, chunk_rows:
     """MATLAB v7.3: HDF5 (readable by HDF5 1.8, as MATLAB writes it) behind a 512-byte user block
     that holds MATLAB's file header; each variable carries its MATLAB_class."""
     h5py = require("h5py", EXTRA, "export to mat73")
-    _check_mat_names(d)
+    _check_mat_names(reader, d)
     n = reader.rows
     with h5py.File(out, "w", userblock_size=512, libver=("earliest", "v108"), **H5_NO_CACHE) as f:
         datasets = []

@@ -122,8 +122,9 @@ def _opened(fmt: str, out):
         return values, units, labels, bits, properties
     lines = out.read_text().splitlines()
     comments = dict(line[2:].split(": ", 1) for line in lines if line.startswith("# "))
-    table = np.genfromtxt(out, delimiter=",", comments="#", skip_header=len(comments) + 1)
     columns = lines[len(comments)].split(",")
+    rows = [line.split(",") for line in lines[len(comments) + 1:]]
+    table = np.array(rows, dtype=float).reshape(-1, len(columns))
     values = {c: table[:, i] for i, c in enumerate(columns)}
     labels, bits = _int_codes(comments["labels"]), _int_codes(comments["bits"])
     return values, json.loads(comments["units"]), labels, bits, comments
@@ -337,6 +338,21 @@ def test_exports_of_a_triggered_recording_keep_the_time_of_each_sample(tmp_path)
     values, _, _, _, properties = _opened("mdf", out)
     assert properties["recording_mode"] == "triggered" and properties["pre_trigger_samples"] == "250"
     np.testing.assert_array_equal(values["time_s"], rows[:, header["columns"].index("time_s")])
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_a_recording_without_samples_exports_its_description(tmp_path, fmt):
+    """A run refused at its first sample leaves a header alone: every format writes no rows and
+    still the units, labels and sample rate."""
+    source = tmp_path / "empty.btl"
+    table = load_table(paper_table_path())
+    TelemetryWriter.for_controller(source, Controller(table, controller_config({}))).close()
+    out = tmp_path / f"empty{recordings.FORMATS[fmt]}"
+    assert recordings.export(source, out, fmt) == 0
+    values, units, labels, _, properties = _opened(fmt, out)
+    assert all(np.asarray(v).size == 0 for v in values.values()), f"{fmt}: rows in an empty recording"
+    assert units["voltage_a1_V"] == "V" and labels["fault"][int(Fault.STALE_INPUT)] == "STALE_INPUT"
+    assert float(properties["sample_rate_hz"]) == 2500.0
 
 
 def test_the_default_output_is_the_recording_with_the_formats_suffix(recording, tmp_path):
