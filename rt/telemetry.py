@@ -211,7 +211,8 @@ class TelemetryWriter:
         self._file.flush()
 
     def _selector(self, recording: Recording, sample_rate_hz: float | None, labels: Mapping, bits: Mapping,
-                  trigger_bits: Mapping[str, int]):
+                  trigger_bits: Mapping[str, int]) -> _Decimator | _Trigger | None:
+        """What picks the rows to keep (None: every row)."""
         if recording.mode == "full":
             return None
         index = {name: i for i, name in enumerate(self.columns)}
