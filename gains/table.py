@@ -167,6 +167,12 @@ class GainTable:
         return self.model_parameters.digest()
 
     @property
+    def sha256(self) -> str:
+        """The SHA-256 of the table's content: the ``sha256`` its file carries (a table read from
+        a file whose content was changed afterwards: the hash of what was read)."""
+        return content_sha256(self._content())
+
+    @property
     def checked(self) -> bool:
         """The table carries the result of its closed-loop check."""
         return bool(self.checks)

@@ -20,6 +20,7 @@ from beamctl.config.schema import (
     refuse_renamed,
     validate,
 )
+from beamctl.rt.telemetry import MAX_PRE_TRIGGER_S, RECORDING_MODES, Recording
 
 MAX_AMPLIFIER_VOLTAGE_V = 150.0
 
@@ -53,7 +54,12 @@ CONTROLLER_DEFAULTS: dict[str, Any] = {
         "saturation_time_s": 0.5,       # continuous saturation before a fault
         "ramp_time_s": 0.5,             # to ramp the voltages to bias on a fault or stop
     },
-    "telemetry": {"buffer_time_s": 20.0, "flush_interval_s": 0.25},
+    # what the recording keeps (rt/telemetry.py): every sample (full); every decimation-th sample
+    # and every sample where the state, fault or flags change (decimated); or the samples from
+    # pre_trigger_s before to post_trigger_s after each trigger: a change of state or fault, a
+    # saturated sample (triggered)
+    "telemetry": {"buffer_time_s": 20.0, "flush_interval_s": 0.25, "mode": "full", "decimation": 10,
+                  "pre_trigger_s": 1.0, "post_trigger_s": 2.0},
     "realtime": {"priority": 80, "cpu": -1, "lock_memory": True},
 }
 
@@ -92,7 +98,10 @@ _SCHEMA = {
         "saturation_time_s": positive("s"),
         "ramp_time_s": positive("s"),
     },
-    "telemetry": {"buffer_time_s": positive("s"), "flush_interval_s": number("s", low=0.01, high=0.5)},
+    "telemetry": {"buffer_time_s": positive("s"), "flush_interval_s": number("s", low=0.01, high=0.5),
+                  "mode": choice(*RECORDING_MODES), "decimation": integer(low=1),
+                  "pre_trigger_s": number("s", low=0.0, high=MAX_PRE_TRIGGER_S),
+                  "post_trigger_s": nonnegative("s")},
     "realtime": {"priority": integer(low=1, high=99), "cpu": integer(low=-1), "lock_memory": boolean()},
 }
 
@@ -122,6 +131,7 @@ class Safety:
 class Telemetry:
     buffer_time_s: float
     flush_interval_s: float
+    recording: Recording = Recording()
 
 
 @dataclass(frozen=True)
@@ -172,4 +182,8 @@ def controller_config(overrides: dict[str, Any] | None = None, source: str = "",
                       answer_budget_periods=s["answer_budget_periods"],
                       late_answer_streak=s["late_answer_streak"],
                       saturation_time=s["saturation_time_s"], ramp_time=s["ramp_time_s"]),
-        telemetry=Telemetry(**v["telemetry"]), realtime=Realtime(**v["realtime"]))
+        telemetry=Telemetry(buffer_time_s=t["buffer_time_s"], flush_interval_s=t["flush_interval_s"],
+                            recording=Recording(mode=t["mode"], decimation=t["decimation"],
+                                                pre_trigger_s=t["pre_trigger_s"],
+                                                post_trigger_s=t["post_trigger_s"])),
+        realtime=Realtime(**v["realtime"]))

@@ -69,6 +69,39 @@ FLAG_LOAD_OUT_OF_TABLE = 8
 FLAG_NO_NEW_SAMPLE = 16
 FLAG_FADING_IN = 32
 FLAG_RAMPING_TO_BIAS = 64
+FLAG_NAMES = {FLAG_SATURATED_A: "SATURATED_A", FLAG_SATURATED_B: "SATURATED_B",
+              FLAG_INTEGRATOR_HELD: "INTEGRATOR_HELD", FLAG_LOAD_OUT_OF_TABLE: "LOAD_OUT_OF_TABLE",
+              FLAG_NO_NEW_SAMPLE: "NO_NEW_SAMPLE", FLAG_FADING_IN: "FADING_IN",
+              FLAG_RAMPING_TO_BIAS: "RAMPING_TO_BIAS"}
+# the flags that start a triggered recording's window (with any change of a coded column)
+TRIGGER_FLAGS = FLAG_SATURATED_A | FLAG_SATURATED_B
+
+# Units of the columns whose names do not end in one (``load_N``, ``voltage_a1_V``, ``step_us``,
+# ``time_s`` do): strains are m/m, the modal coordinates of the mass-normalised modes (eq. 15)
+# m sqrt(kg), their integrals m sqrt(kg) s. Codes, counts and fractions have none.
+_UNIT_SUFFIXES = {"_N": "N", "_V": "V", "_us": "us", "_s": "s"}
+_UNIT_PREFIXES = {"strain_": "m/m", "q_": "m*sqrt(kg)", "xi_": "m*sqrt(kg)*s"}
+
+
+def code_labels() -> dict[str, dict[int, str]]:
+    """The record's coded columns and the label of each code: {column: {code: label}}."""
+    return {"state": {int(s): s.name for s in State}, "fault": {int(f): f.name for f in Fault}}
+
+
+def flag_labels() -> dict[str, dict[int, str]]:
+    """The record's bit-field columns and the label of each bit: {column: {bit: label}}."""
+    return {"flags": dict(FLAG_NAMES)}
+
+
+def column_unit(column: str) -> str:
+    """The unit of a record column ("" for codes, counts and fractions)."""
+    for prefix, unit in _UNIT_PREFIXES.items():
+        if column.startswith(prefix):
+            return unit
+    for suffix, unit in _UNIT_SUFFIXES.items():
+        if column.endswith(suffix):
+            return unit
+    return ""
 
 
 class Controller:

@@ -160,7 +160,8 @@ class ControlLoop:
         tel = {}
         if self.telemetry is not None:
             tel = {"path": str(self.telemetry.path), "written": self.telemetry.written,
-                   "dropped": self.telemetry.dropped}
+                   "received": self.telemetry.received, "dropped": self.telemetry.dropped,
+                   "mode": self.telemetry.recording.mode}
         timing = {**self.timing.summary(), "max_overrun_streak": c.safety.max_overrun_streak}
         return RunResult(state=c.state.name, fault=c.supervisor.fault.name, reason=c.supervisor.reason(),
                          cycles=self.cycles, stop_requested_by=self._stop_signal,

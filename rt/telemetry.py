@@ -6,59 +6,238 @@ made before the loop) or, if the writer has fallen a whole buffer behind, drops 
 and counts it. The writer appends whole rows and flushes at least every ``flush_interval_s``
 (<= 0.5 s), so after a ``kill -9`` the file holds everything up to the last flush.
 
+What the file keeps is the writer thread's choice (``Recording``), never the loop's: every
+sample (``full``); every k-th sample and every sample where a coded or bit-field column (state,
+fault, flags) changes (``decimated``); or, around each trigger (a change of a coded column, a
+sample with a trigger flag such as a saturation), the samples from ``pre_trigger_s`` before to
+``post_trigger_s`` after it (``triggered``). Every row keeps its own time stamp (the record's
+``time_s``), so a thinned recording's time base stays exact.
+
 File format (``.btl``): the line ``BEAMCTL-TELEMETRY 1``, an 8-byte little-endian length,
-a JSON header (columns, sample rate, run metadata), then rows of little-endian float64.
-A reader ignores an incomplete last row (a writer killed mid-write) and says how many bytes
-it ignored.
+a JSON header (columns, and where the writer knows them the sample rate, the units, the labels
+of coded columns and bits, the recording mode, and run metadata), then rows of little-endian
+float64. A reader ignores an incomplete last row (a writer killed mid-write) and says how many
+bytes it ignored.
 """
 
 from __future__ import annotations
 
+import datetime as _dt
 import json
+import os
 import struct
 import threading
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 MAGIC = b"BEAMCTL-TELEMETRY 1\n"
+RECORDING_MODES = ("full", "decimated", "triggered")
+MAX_PRE_TRIGGER_S = 60.0     # the pre-trigger history is held in memory (2 MB/s at 6 kHz)
 
 
 class TelemetryError(ValueError):
     """A telemetry file could not be read."""
 
 
+@dataclass(frozen=True)
+class Recording:
+    """Which samples a recording keeps (the writer thread selects them)."""
+
+    mode: str = "full"
+    decimation: int = 10            # decimated: every decimation-th sample (and every event)
+    pre_trigger_s: float = 1.0      # triggered: kept before each trigger...
+    post_trigger_s: float = 2.0     # ...and after it
+
+    def __post_init__(self) -> None:
+        if self.mode not in RECORDING_MODES:
+            raise ValueError(f"recording mode must be one of {RECORDING_MODES}, got {self.mode!r}")
+        if self.decimation < 1:
+            raise ValueError(f"decimation must be >= 1, got {self.decimation}")
+        if not 0.0 <= self.pre_trigger_s <= MAX_PRE_TRIGGER_S or not self.post_trigger_s >= 0.0:
+            raise ValueError(f"pre_trigger_s must be in [0, {MAX_PRE_TRIGGER_S:g}] s and post_trigger_s "
+                             f">= 0 s, got {self.pre_trigger_s} and {self.post_trigger_s}")
+
+    def window_samples(self, sample_rate_hz: float) -> tuple[int, int]:
+        """(samples kept before a trigger, samples kept after it)."""
+        return round(self.pre_trigger_s * sample_rate_hz), round(self.post_trigger_s * sample_rate_hz)
+
+    def header(self, sample_rate_hz: float | None) -> dict:
+        """What a reader needs to know of the selection (the header's ``recording``)."""
+        if self.mode == "decimated":
+            return {"mode": "decimated", "decimation": self.decimation}
+        if self.mode == "triggered":
+            pre, post = self.window_samples(sample_rate_hz)
+            return {"mode": "triggered", "pre_trigger_s": self.pre_trigger_s,
+                    "post_trigger_s": self.post_trigger_s, "pre_trigger_samples": pre,
+                    "post_trigger_samples": post}
+        return {"mode": "full"}
+
+
+class _Events:
+    """Per row of a chunk: did a coded or bit-field column change from the row before (the row
+    before the chunk remembered from the last call), and does a trigger flag stand."""
+
+    def __init__(self, event_columns: list[int], trigger_bits: dict[int, int]) -> None:
+        self._columns = event_columns
+        self._trigger_bits = trigger_bits
+        self._last: np.ndarray | None = None
+
+    def changed(self, rows: np.ndarray, first_is_event: bool) -> np.ndarray:
+        events = rows[:, self._columns]
+        changed = np.empty(len(rows), dtype=bool)
+        changed[1:] = np.any(events[1:] != events[:-1], axis=1)
+        changed[0] = first_is_event if self._last is None else bool(np.any(events[0] != self._last))
+        self._last = events[-1].copy()
+        return changed
+
+    def flagged(self, rows: np.ndarray) -> np.ndarray:
+        out = np.zeros(len(rows), dtype=bool)
+        for column, bits in self._trigger_bits.items():
+            out |= (rows[:, column].astype(np.int64) & bits) != 0
+        return out
+
+
+class _Decimator:
+    """Every ``k``-th sample (counted from the first) and every sample that changes an event
+    column."""
+
+    def __init__(self, k: int, events: _Events) -> None:
+        self._k = k
+        self._events = events
+
+    def select(self, rows: np.ndarray, first: int) -> list[np.ndarray]:
+        keep = self._events.changed(rows, first_is_event=True)
+        keep[(-first) % self._k::self._k] = True
+        return [rows[keep]]
+
+
+class _Trigger:
+    """The samples from ``pre`` before to ``post`` after each trigger (a change of a coded
+    column, or a trigger flag). The last ``pre`` samples wait in a history ring of their own,
+    so that a trigger can still write them."""
+
+    def __init__(self, pre: int, post: int, width: int, changes: _Events, flags: _Events) -> None:
+        self._pre, self._post = pre, post
+        self._changes, self._flags = changes, flags
+        self._history = np.zeros((max(pre, 1), width))
+        self._written = 0       # absolute index after the last sample written
+        self._until = 0         # absolute index after the current post-trigger window
+
+    def select(self, rows: np.ndarray, first: int) -> list[np.ndarray]:
+        m = len(rows)
+        changed = self._changes.changed(rows, first_is_event=False)
+        triggers = np.flatnonzero(changed | self._flags.flagged(rows))
+        keep = np.zeros(m + 1, dtype=np.int64)      # a difference array of the windows
+        if self._until > first:
+            keep[0] += 1
+            keep[min(m, self._until - first)] -= 1
+        out = []
+        if triggers.size:
+            starts = np.maximum(triggers - self._pre, 0)
+            ends = np.minimum(triggers + self._post + 1, m)
+            np.add.at(keep, starts, 1)
+            np.add.at(keep, ends, -1)
+            self._until = max(self._until, first + int(triggers[-1]) + self._post + 1)
+            # the history holds the samples [first - min(first, pre), first)
+            earliest = max(first + int(triggers[0]) - self._pre, self._written, first - min(first, self._pre))
+            if earliest < first:
+                out.append(self._history[np.arange(earliest, first) % len(self._history)])
+        mask = np.cumsum(keep[:m]) > 0
+        kept = np.flatnonzero(mask)
+        if kept.size:
+            out.append(rows[mask])
+            self._written = first + int(kept[-1]) + 1
+        self._remember(rows, first)
+        return out
+
+    def _remember(self, rows: np.ndarray, first: int) -> None:
+        if self._pre:
+            tail = rows[-self._pre:]
+            start = first + len(rows) - len(tail)
+            self._history[np.arange(start, start + len(tail)) % self._pre] = tail
+
+
 class TelemetryWriter:
-    """Ring buffer plus writer thread. Use ``start()``, ``push(record)`` per sample, ``close()``."""
+    """Ring buffer plus writer thread. Use ``start()``, ``push(record)`` per sample, ``close()``.
+
+    ``units`` ({column: unit}), ``labels`` ({column: {code: label}}) and ``bits`` ({column:
+    {bit: label}}) go into the header for readers and exporters; the coded and bit-field
+    columns are the events a decimated recording always keeps and (the coded ones, and the bits
+    in ``trigger_bits`` {column: mask}) the triggers of a triggered one, which needs
+    ``sample_rate_hz``. ``received`` counts the records taken from the ring, ``written`` the
+    rows in the file, ``dropped`` the records the ring had no room for.
+    """
 
     def __init__(self, path: str | Path, columns: list[str], capacity: int,
-                 flush_interval_s: float = 0.25, meta: dict | None = None) -> None:
+                 flush_interval_s: float = 0.25, meta: dict | None = None, *,
+                 sample_rate_hz: float | None = None, recording: Recording | None = None,
+                 units: Mapping[str, str] | None = None,
+                 labels: Mapping[str, Mapping[int, str]] | None = None,
+                 bits: Mapping[str, Mapping[int, str]] | None = None,
+                 trigger_bits: Mapping[str, int] | None = None) -> None:
         self.path = Path(path)
         self.columns = list(columns)
         self.capacity = int(capacity)
         self.flush_interval_s = float(flush_interval_s)
+        self.recording = recording = recording or Recording()
+        if recording.mode == "triggered" and not sample_rate_hz:
+            raise ValueError("a triggered recording needs the sample rate (its windows are in seconds)")
+        self._select = self._selector(recording, sample_rate_hz, labels or {}, bits or {}, trigger_bits or {})
         self._ring = np.zeros((self.capacity, len(columns)))
         self._rows = [self._ring[i] for i in range(self.capacity)]   # views made once
         self._head = 0        # records pushed (loop thread only)
-        self._tail = 0        # records written (writer thread only)
+        self._tail = 0        # records taken (writer thread only)
         self.dropped = 0
+        self.received = 0
         self.written = 0
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        header = json.dumps({"columns": self.columns, "meta": meta or {}}).encode()
+        header = {"columns": self.columns,
+                  "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+                  "recording": recording.header(sample_rate_hz)}
+        if sample_rate_hz:
+            header["sample_rate_hz"] = float(sample_rate_hz)
+        for key, table in (("units", units), ("labels", labels), ("bits", bits)):
+            if table:
+                header[key] = {c: v if key == "units" else {str(k): t for k, t in v.items()}
+                               for c, v in table.items() if c in self.columns}
+        encoded = json.dumps({**header, "meta": meta or {}}).encode()
         self._file = open(self.path, "wb")  # noqa: SIM115 (closed in close())
-        self._file.write(MAGIC + struct.pack("<Q", len(header)) + header)
+        self._file.write(MAGIC + struct.pack("<Q", len(encoded)) + encoded)
         self._file.flush()
+
+    def _selector(self, recording: Recording, sample_rate_hz: float | None, labels: Mapping, bits: Mapping,
+                  trigger_bits: Mapping[str, int]) -> _Decimator | _Trigger | None:
+        """What picks the rows to keep (None: every row)."""
+        if recording.mode == "full":
+            return None
+        index = {name: i for i, name in enumerate(self.columns)}
+        coded = [index[c] for c in labels if c in index]
+        if recording.mode == "decimated":
+            flagged = [index[c] for c in bits if c in index]
+            return _Decimator(recording.decimation, _Events(coded + flagged, {}))
+        pre, post = recording.window_samples(sample_rate_hz)
+        return _Trigger(pre, post, len(self.columns), _Events(coded, {}),
+                        _Events([], {index[c]: int(m) for c, m in trigger_bits.items() if c in index}))
 
     @classmethod
     def for_controller(cls, path: str | Path, controller, meta: dict | None = None) -> TelemetryWriter:
-        """A writer for a controller's records, sized by its ``telemetry`` settings."""
-        from beamctl.rt.controller import RECORD_COLUMNS
+        """A writer for a controller's records, sized and set by its ``telemetry`` settings, with
+        the record's units, code labels and flag bits, the sample rate and the gain table's
+        SHA-256 (``meta["gain_table_sha256"]``) in the header."""
+        from beamctl.rt.controller import RECORD_COLUMNS, TRIGGER_FLAGS, code_labels, column_unit, flag_labels
 
         settings = controller.config.telemetry
         return cls(path, RECORD_COLUMNS, capacity=int(settings.buffer_time_s * controller.sample_rate_hz),
-                   flush_interval_s=settings.flush_interval_s, meta=meta)
+                   flush_interval_s=settings.flush_interval_s,
+                   meta={"gain_table_sha256": controller.table.sha256, **(meta or {})},
+                   sample_rate_hz=controller.sample_rate_hz, recording=settings.recording,
+                   units={c: column_unit(c) for c in RECORD_COLUMNS}, labels=code_labels(),
+                   bits=flag_labels(), trigger_bits={column: TRIGGER_FLAGS for column in flag_labels()})
 
     def start(self) -> TelemetryWriter:
         self._thread = threading.Thread(target=self._run, name="telemetry-writer", daemon=True)
@@ -82,11 +261,15 @@ class TelemetryWriter:
         if start < end:
             chunks = [self._ring[start:end]]
         else:
-            chunks = [self._ring[start:], self._ring[:end]]
+            chunks = [self._ring[start:], self._ring[:end]] if end else [self._ring[start:]]
+        first = tail                    # the sample index of the chunk's first record
         for chunk in chunks:
-            self._file.write(chunk.astype("<f8", copy=False).tobytes())
+            for rows in ([chunk] if self._select is None else self._select.select(chunk, first)):
+                self._file.write(rows.astype("<f8", copy=False).tobytes())
+                self.written += len(rows)
+            first += len(chunk)
         self._tail = head
-        self.written = head
+        self.received = head
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -95,7 +278,7 @@ class TelemetryWriter:
             self._stop.wait(self.flush_interval_s)
 
     def close(self) -> None:
-        """Write everything pushed so far and close the file."""
+        """Write everything pushed so far (what the recording keeps of it) and close the file."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join()
@@ -111,45 +294,95 @@ class TelemetryWriter:
         self.close()
 
 
+class TelemetryReader:
+    """A telemetry file opened for reading: its ``header``, the number of complete ``rows``
+    (counted when opened: a file still being written is read as far as it was then), and the
+    rows in chunks (``chunks``) or whole (``read_all``)."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        try:
+            self._file = open(self.path, "rb")  # noqa: SIM115 (closed in close())
+        except OSError as exc:
+            raise TelemetryError(f"{self.path}: cannot read ({exc.strerror or exc})") from None
+        try:
+            self.header = self._read_header()
+        except BaseException:
+            self._file.close()
+            raise
+        self.columns: list[str] = self.header["columns"]
+        self.row_bytes = 8 * len(self.columns)
+        size = os.fstat(self._file.fileno()).st_size - self._data_offset
+        self.rows = size // self.row_bytes
+        self.header["incomplete_row_bytes"] = size - self.rows * self.row_bytes
+
+    def _read_header(self) -> dict:
+        p = self.path
+        try:
+            start = self._file.read(len(MAGIC) + 8)
+        except OSError as exc:
+            raise TelemetryError(f"{p}: cannot read ({exc.strerror or exc})") from None
+        if not start.startswith(MAGIC) or len(start) < len(MAGIC) + 8:
+            raise TelemetryError(f"{p}: not a beamctl telemetry file (no {MAGIC.strip().decode()!r} header)")
+        (length,) = struct.unpack("<Q", start[len(MAGIC):])
+        room = os.fstat(self._file.fileno()).st_size - len(start)
+        if length > room:
+            raise TelemetryError(f"{p}: damaged header (it says {length} bytes, the file ends {room} "
+                                 f"bytes after it begins: cut off or overwritten)")
+        raw = self._file.read(length)
+        try:
+            header = json.loads(raw)
+            columns = header["columns"]
+            if not (isinstance(columns, list) and columns and all(isinstance(c, str) for c in columns)):
+                raise TypeError
+        except (ValueError, KeyError, TypeError):
+            raise TelemetryError(f"{p}: damaged header") from None
+        self._data_offset = len(MAGIC) + 8 + length
+        return header
+
+    def chunks(self, rows_per_chunk: int) -> Iterator[np.ndarray]:
+        """The complete rows, ``rows_per_chunk`` at a time, each [k x columns] in one buffer that
+        the next chunk overwrites (copy what you keep)."""
+        buffer = np.empty((min(max(1, rows_per_chunk), max(self.rows, 1)), len(self.columns)), dtype="<f8")
+        self._file.seek(self._data_offset)
+        done = 0
+        while done < self.rows:
+            k = min(len(buffer), self.rows - done)
+            view = buffer[:k]
+            got = self._readinto(view)
+            if got != k * self.row_bytes:
+                raise TelemetryError(f"{self.path}: the file shrank while it was read "
+                                     f"(at row {done + got // self.row_bytes})")
+            done += k
+            yield view
+
+    def read_all(self) -> np.ndarray:
+        """Every complete row [n x columns], read into memory once."""
+        rows = np.empty((self.rows, len(self.columns)), dtype="<f8")
+        self._file.seek(self._data_offset)
+        got = self._readinto(rows) if self.rows else 0
+        if got != rows.nbytes:
+            raise TelemetryError(f"{self.path}: the file shrank while it was read")
+        return rows.astype(float, copy=False)
+
+    def _readinto(self, array: np.ndarray) -> int:
+        try:
+            return self._file.readinto(memoryview(array).cast("B"))
+        except OSError as exc:
+            raise TelemetryError(f"{self.path}: cannot read ({exc.strerror or exc})") from None
+
+    def close(self) -> None:
+        self._file.close()
+
+    def __enter__(self) -> TelemetryReader:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
 def read_telemetry(path: str | Path) -> tuple[dict, np.ndarray]:
     """(header, data [n x columns]) of a telemetry file. An incomplete last row is ignored;
     ``header["incomplete_row_bytes"]`` gives its length (0 when the file ends on a row)."""
-    p = Path(path)
-    try:
-        raw = p.read_bytes()
-    except OSError as exc:
-        raise TelemetryError(f"{p}: cannot read ({exc.strerror or exc})") from None
-    if not raw.startswith(MAGIC) or len(raw) < len(MAGIC) + 8:
-        raise TelemetryError(f"{p}: not a beamctl telemetry file (no {MAGIC.strip().decode()!r} header)")
-    (length,) = struct.unpack("<Q", raw[len(MAGIC):len(MAGIC) + 8])
-    body = len(MAGIC) + 8
-    try:
-        header = json.loads(raw[body:body + length])
-        columns = header["columns"]
-    except (ValueError, KeyError, TypeError):
-        raise TelemetryError(f"{p}: damaged header") from None
-    data = raw[body + length:]
-    row_bytes = 8 * len(columns)
-    n = len(data) // row_bytes
-    rows = np.frombuffer(data[:n * row_bytes], dtype="<f8").reshape(n, len(columns))
-    header["incomplete_row_bytes"] = len(data) - n * row_bytes
-    return header, rows.astype(float)
-
-
-def export(header: dict, rows: np.ndarray, out: str | Path, fmt: str) -> Path:
-    """Write telemetry (as ``read_telemetry`` returns it) as MATLAB ``mat`` (one variable per
-    column plus ``columns`` and ``meta_json``) or ``csv`` (a header row of column names)."""
-    out = Path(out)
-    if fmt == "mat":
-        import scipy.io
-
-        variables = {name: rows[:, i] for i, name in enumerate(header["columns"])}
-        variables["columns"] = np.array(header["columns"], dtype=object)
-        variables["meta_json"] = json.dumps(header.get("meta", {}))
-        scipy.io.savemat(out, variables, do_compression=True, appendmat=False)
-    elif fmt == "csv":
-        np.savetxt(out, rows, delimiter=",", header=",".join(header["columns"]), comments="",
-                   fmt="%.10g")
-    else:
-        raise TelemetryError(f"unknown export format {fmt!r}: expected 'mat' or 'csv'")
-    return out
+    with TelemetryReader(path) as reader:
+        return reader.header, reader.read_all()

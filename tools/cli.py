@@ -97,6 +97,7 @@ def _run(argv: list[str] | None) -> int:
     """Parse ``argv`` and run the command; every refusal and interruption in one line."""
     from beamctl.config.schema import ConfigError
     from beamctl.rt.telemetry import TelemetryError
+    from beamctl.tools.extras import MissingExtraError
 
     name = "beamctl"
     try:
@@ -108,7 +109,7 @@ def _run(argv: list[str] | None) -> int:
         status = int(args.run(args) or 0)
         sys.stdout.flush()
         return status
-    except (ConfigError, OutputPathError, TelemetryError) as exc:
+    except (ConfigError, OutputPathError, TelemetryError, MissingExtraError) as exc:
         print(f"{name}: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except Interrupted as exc:

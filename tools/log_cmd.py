@@ -3,22 +3,27 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from beamctl.rt.telemetry import export, read_telemetry
+from beamctl.rt.telemetry import TelemetryReader, read_telemetry
 from beamctl.tools.outputs import OutputPathError, check_dir, check_file, replacing
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("log", help="telemetry files: export to .mat/.csv, plot")
+    from beamctl.tools.recordings import FORMATS
+
+    p = sub.add_parser("log", help="telemetry files: export to MDF4/HDF5/.mat/.csv, plot")
     lsub = p.add_subparsers(dest="log_command", metavar="ACTION", required=True)
-    e = lsub.add_parser("export", help="convert a telemetry file to MATLAB .mat or CSV")
+    e = lsub.add_parser("export", help="convert a telemetry file to MDF4, HDF5, MATLAB .mat or CSV")
     e.add_argument("file", help="telemetry file (.btl)")
-    e.add_argument("--to", choices=("mat", "csv"), required=True, help="output format")
-    e.add_argument("--out", metavar="FILE", help="output file (default: FILE with the new suffix)")
+    e.add_argument("--to", choices=tuple(FORMATS), required=True,
+                   help="mdf (MDF4, .mf4), h5 (HDF5), mat73 (MATLAB v7.3), mat (MATLAB v5), csv")
+    e.add_argument("--out", metavar="FILE", help="output file (default: FILE with the format's suffix)")
     e.set_defaults(run=run_export)
     pl = lsub.add_parser("plot", help="figure-7 style plots of a run")
     pl.add_argument("file", help="telemetry file (.btl)")
@@ -26,26 +31,41 @@ def add_parser(sub) -> None:
     pl.set_defaults(run=run_plot)
 
 
-def _read(file: str, command: str) -> tuple[dict, np.ndarray]:
-    """The recording; a warning when it ends in an incomplete row (its complete rows are used)."""
-    header, rows = read_telemetry(file)
+def _warn_incomplete(file: str, command: str, header: dict, rows: int) -> None:
+    """A warning when the recording ends in an incomplete row (its complete rows are used)."""
     ignored = header["incomplete_row_bytes"]
     if ignored:
-        print(f"beamctl log {command}: warning: {file} holds {len(rows)} complete rows and ends in an "
+        print(f"beamctl log {command}: warning: {file} holds {rows} complete rows and ends in an "
               f"incomplete row ({ignored} bytes ignored: the recording was cut off mid-write)",
               file=sys.stderr)
+
+
+def _read(file: str, command: str) -> tuple[dict, np.ndarray]:
+    """The recording, with the warning of ``_warn_incomplete``."""
+    header, rows = read_telemetry(file)
+    _warn_incomplete(file, command, header, len(rows))
     return header, rows
 
 
 def run_export(args: argparse.Namespace) -> int:
+    from beamctl.tools import recordings
+
     what = "--out" if args.out else "--out (default)"
-    out = check_file(args.out or Path(args.file).with_suffix("." + args.to), what)
+    out = check_file(args.out or Path(args.file).with_suffix(recordings.FORMATS[args.to]), what)
     if out.resolve() == Path(args.file).resolve():
         raise OutputPathError(what, out, "it is the telemetry file being exported")
-    header, rows = _read(args.file, "export")
-    with replacing(out) as temp:
-        export(header, rows, temp, args.to)
-    print(f"wrote {out} ({len(rows)} samples x {len(header['columns'])} columns)")
+    recordings.check_format(args.to)                  # refused before any output exists
+    with TelemetryReader(args.file) as reader:
+        header = reader.header
+    try:
+        # asammdf prints its read rate to stdout when a block takes over 10 s to load: stdout
+        # carries this command's result alone
+        with replacing(out) as temp, contextlib.redirect_stdout(io.StringIO()):
+            rows = recordings.export(args.file, temp, args.to)
+    except OSError as exc:
+        raise OutputPathError(what, out, (exc.strerror or str(exc)).lower()) from None
+    _warn_incomplete(args.file, "export", header, rows)
+    print(f"wrote {out} ({rows} samples x {len(header['columns'])} columns, {args.to})")
     return 0
 
 

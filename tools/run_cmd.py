@@ -130,12 +130,13 @@ def run(args: argparse.Namespace) -> int:
                   f"{age['max_us']:.0f} us; {late} later than the {budget_us:.0f} us budget; "
                   f"{result.backlog_discarded} queued samples discarded at start")
         tel = result.telemetry
-        print(f"  telemetry: {tel.get('written', 0)} records, {tel.get('dropped', 0)} dropped, "
+        kept = "" if tel.get("mode", "full") == "full" else f" ({tel['mode']}: of {tel['received']} samples)"
+        print(f"  telemetry: {tel.get('written', 0)} records{kept}, {tel.get('dropped', 0)} dropped, "
               f"{tel.get('path', '')}")
         print(f"  ended {result.state}: {result.reason} (stopped by {result.stop_requested_by or '-'})")
     dropped = result.telemetry.get("dropped", 0)
     if dropped:
-        print(f"beamctl run: warning: {dropped} of {dropped + result.telemetry.get('written', 0)} "
+        print(f"beamctl run: warning: {dropped} of {dropped + result.telemetry.get('received', 0)} "
               f"telemetry records were dropped: the writer fell a whole ring "
               f"(controller.telemetry.buffer_time_s) behind the loop", file=sys.stderr)
     return 0

@@ -35,10 +35,15 @@ def test_export_mat_holds_every_column(recording, tmp_path, capsys):
     assert "voltage_b3_V" in mat and "columns" in mat
 
 
+def _table_lines(path) -> list[str]:
+    """The CSV table: the lines below the ``#`` lines that describe the recording."""
+    return [line for line in path.read_text().splitlines() if not line.startswith("#")]
+
+
 def test_export_csv_has_a_header_row(recording, tmp_path):
     out = tmp_path / "run.csv"
     assert main(["log", "export", str(recording), "--to", "csv", "--out", str(out)]) == 0
-    lines = out.read_text().splitlines()
+    lines = _table_lines(out)
     assert lines[0].split(",") == RECORD_COLUMNS
     assert len(lines) == 1 + len(read_telemetry(recording)[1])
 
@@ -77,7 +82,7 @@ def test_export_of_a_file_cut_off_mid_row_keeps_the_complete_rows_and_warns(reco
     assert main(["log", "export", str(cut_off), "--to", "csv", "--out", str(out)]) == 0
     captured = capsys.readouterr()
     _warning(captured.err, len(rows) - 1, 8 * len(RECORD_COLUMNS) - 100)
-    assert len(out.read_text().splitlines()) == 1 + len(rows) - 1
+    assert len(_table_lines(out)) == 1 + len(rows) - 1
     assert f"wrote {out} ({len(rows) - 1} samples" in captured.out
 
 
