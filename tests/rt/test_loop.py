@@ -349,8 +349,14 @@ def test_sample_pacing_answers_every_sample_once_and_holds_through_a_missing_one
     neither writes nor moves the voltages, so a DAQ pairing answers with samples never sees
     an answer twice."""
     script = [DEFLECTED] * 200 + [None, None] + [DEFLECTED] * 100
-    loop, hal = _loop(table, script, max_cycles=302)
-    _run(loop)             # the cycle limit stops the run: a ramp to bias, one write per sample
+    # time passes only by the read time-outs (1.5 periods each): the two missing samples are 3
+    # periods of silence, short of the stale-input fault (5), however slow the machine
+    clock = FakeClock(tick=0.0)
+    config = controller_config({"start_ramp_time_s": 0.0, "safety": {"ramp_time_s": RAMP_TIME}})
+    hal = ScriptedHal(table.design.sample_rate_hz, script, default=DEFLECTED, sleep=clock.sleep).open()
+    loop = ControlLoop(Controller(table, config), hal, max_cycles=302, clock=clock)
+    result = _run(loop)    # the cycle limit stops the run: a ramp to bias, one write per sample
+    assert result.fault == Fault.NONE.name, result.reason
     v = np.array(hal.written)
     assert loop.cycles == (hal.sequence - 1) + 2, "every cycle but the two time-outs read a sample"
     assert len(v) == hal.sequence, f"{len(v)} writes for {hal.sequence} samples"
