@@ -7,6 +7,11 @@ the HAL, discards what queued before it was ready, arms, runs until SIGINT/SIGTE
 ramps the stacks to bias and holds them there, latched, until the operator
 re-arms with SIGUSR1 (``systemctl kill -s USR1 beamctl``) or stops the service. Under systemd
 it reports readiness and feeds the watchdog from the control loop.
+
+The operator commands the running service over its control socket (tools/control.py, ``beamctl
+ctl``): start (after ``--hold``, which arms and waits at bias), stop, rearm, gains TABLE, status.
+The socket is bound before anything else starts, so a second service on the same socket is
+refused in one line.
 """
 
 from __future__ import annotations
@@ -18,15 +23,24 @@ import sys
 import threading
 from pathlib import Path
 
-from beamctl.hal.base import HalError
+from beamctl.gains.table import GainTable
+from beamctl.hal.base import HalBase, HalError
 from beamctl.rt import realtime
 from beamctl.rt.controller import Controller
 from beamctl.rt.loop import ControlLoop
 from beamctl.rt.telemetry import TelemetryWriter
 from beamctl.tools.argtypes import seconds
+from beamctl.tools.control import ControlError, ControlServer, default_socket_path
 from beamctl.tools.outputs import check_file, check_new_file
 from beamctl.tools.sdnotify import Notifier
-from beamctl.tools.service import build_hal, check_voltage_range, load_gain_table, load_service_config
+from beamctl.tools.service import (
+    ServiceConfig,
+    build_hal,
+    check_voltage_range,
+    load_gain_table,
+    load_service_config,
+    table_for_swap,
+)
 from beamctl.tools.signals import stop_on_signals
 
 
@@ -39,6 +53,12 @@ def add_parser(sub) -> None:
                    help="stop after S seconds (default: run.duration_s; 0 until stopped)")
     p.add_argument("--require-rt", action="store_true",
                    help="refuse to run without SCHED_FIFO, affinity and locked memory")
+    p.add_argument("--hold", action="store_true",
+                   help="arm and hold the stacks at bias until `beamctl ctl start`")
+    p.add_argument("--control-socket", metavar="PATH",
+                   help="the control socket for `beamctl ctl` (default: control.socket, else "
+                        "$BEAMCTL_CONTROL_SOCKET, /run/beamctl/control.sock, $XDG_RUNTIME_DIR/beamctl/"
+                        "control.sock or /tmp/beamctl-UID/control.sock)")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
     p.set_defaults(run=run)
 
@@ -67,11 +87,31 @@ def run(args: argparse.Namespace) -> int:
         return 2
     check_voltage_range(cfg, hal)
     controller = Controller(table, cfg.controller)
+    try:
+        server = ControlServer(args.control_socket or cfg.control_socket or default_socket_path())
+    except ControlError as exc:
+        print(f"beamctl run: error: {exc}", file=sys.stderr)
+        return 2
+    try:
+        return _serve(args, cfg, path, table, hal, controller, notifier, server)
+    finally:
+        server.close()
+
+
+def _log(line: str) -> None:
+    """A line of the service's log (stderr, where systemd's journal takes it)."""
+    print(f"beamctl run: {line}", file=sys.stderr, flush=True)
+
+
+def _serve(args: argparse.Namespace, cfg: ServiceConfig, path: Path, table: GainTable, hal: HalBase,
+           controller: Controller, notifier: Notifier, server: ControlServer) -> int:
+    """The service with its control socket bound: telemetry, the loop, the summary."""
     duration_s = cfg.duration_s if args.duration is None else args.duration
     max_cycles = int(duration_s * table.design.sample_rate_hz) if duration_s else None
     # the banner goes to stderr with the other messages: stdout carries the summary alone
     print(f"beamctl run: {cfg.hal.backend} backend, {table.design.sample_rate_hz:g} Hz, "
           f"{cfg.controller.pacing} pacing, gain table {cfg.table_path}, telemetry {path}", file=sys.stderr)
+    _log(f"control socket {server.path} (mode 0660: user and group {server.group} may command)")
     # Telemetry starts before the loop asks for SCHED_FIFO (the writer thread must not inherit
     # it); the loop then takes its real-time set-up and only after it opens the HAL, so that no
     # sample queues up while memory is locked and the collector runs.
@@ -86,7 +126,10 @@ def run(args: argparse.Namespace) -> int:
     with stop_on_signals(signal.SIGINT, signal.SIGTERM) as stop:     # the operator's stop
         loop = ControlLoop(controller, hal, telemetry=telemetry, stop_on_fault=False,
                            max_cycles=max_cycles, on_cycle=on_cycle if notifier.watchdog_interval_s else None,
-                           stop=stop)
+                           stop=stop, start=not args.hold)
+        server.serve(loop, table=str(Path(cfg.table_path).absolute()), table_sha256=table.sha256,
+                     prepare_table=lambda table_path: table_for_swap(cfg, hal, controller, table_path),
+                     log=_log)
         rearm = None
         if threading.current_thread() is threading.main_thread():
             rearm = signal.signal(signal.SIGUSR1, lambda *_: loop.request_rearm())

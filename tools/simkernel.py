@@ -58,7 +58,7 @@ N_K = 22
 # the record's layout, as data
 (L_TIME, L_SEQUENCE, L_FLAGS, L_LOAD, L_LOAD_FILTERED, L_Q, L_U, L_V, L_SCALE_A, L_SCALE_B,
  L_INPUT_PERIOD, L_ANSWER_AGE, L_STRAINS, L_XI, L_APPLIED, L_FLAG_SAT_A, L_FLAG_SAT_B, L_FLAG_HELD,
- L_FLAG_FADING) = range(19)
+ L_FLAG_FADING, L_OPERATOR) = range(20)
 
 
 def layout() -> np.ndarray:
@@ -68,7 +68,7 @@ def layout() -> np.ndarray:
                      c["q_1y"], c["force_y_A_N"], c["voltage_a1_V"], ctl.I_SCALE_A, ctl.I_SCALE_B,
                      ctl.I_INPUT_PERIOD_US, ctl.I_ANSWER_AGE_US, c["strain_y1"], c["xi_1y"],
                      c["applied_force_y_A_N"], ctl.FLAG_SATURATED_A, ctl.FLAG_SATURATED_B,
-                     ctl.FLAG_INTEGRATOR_HELD, ctl.FLAG_FADING_IN], dtype=np.int64)
+                     ctl.FLAG_INTEGRATOR_HELD, ctl.FLAG_FADING_IN, ctl.I_OPERATOR_COMMAND], dtype=np.int64)
 
 
 def _run_cycles(f, k, lay, budget, state, nxt, ad, bd, c_meas, meas_lo, inputs, history, noise,
@@ -279,6 +279,7 @@ def _run_cycles(f, k, lay, budget, state, nxt, ad, bd, c_meas, meas_lo, inputs, 
         buffer[lay[L_LOAD]] = load
         buffer[lay[L_FLAGS]] = flags
         buffer[lay[L_ANSWER_AGE]] = math.nan
+        buffer[lay[L_OPERATOR]] = 0.0               # no operator's command in a kernel cycle
         f[F_SAFETY_TIME] = t_s
         k[K_MISSING] = 0
         k[K_NOISE] = i_noise + 1
