@@ -6,6 +6,10 @@ made before the loop) or, if the writer has fallen a whole buffer behind, drops 
 and counts it. The writer appends whole rows and flushes at least every ``flush_interval_s``
 (<= 0.5 s), so after a ``kill -9`` the file holds everything up to the last flush.
 
+A live view (rt/live.py) may watch: the writer hands each drain's rows to its publisher,
+in the writer's thread, and then drains at least every ``PUBLISH_INTERVAL_S``; the loop's side
+is the same with or without it. A writer without a file (``path`` None) only feeds the view.
+
 File format (``.btl``): the line ``BEAMCTL-TELEMETRY 1``, an 8-byte little-endian length,
 a JSON header (columns, sample rate, run metadata), then rows of little-endian float64.
 A reader ignores an incomplete last row (a writer killed mid-write) and says how many bytes
@@ -21,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from beamctl.rt.live import LivePublisher
+
 MAGIC = b"BEAMCTL-TELEMETRY 1\n"
 
 
@@ -31,9 +37,10 @@ class TelemetryError(ValueError):
 class TelemetryWriter:
     """Ring buffer plus writer thread. Use ``start()``, ``push(record)`` per sample, ``close()``."""
 
-    def __init__(self, path: str | Path, columns: list[str], capacity: int,
-                 flush_interval_s: float = 0.25, meta: dict | None = None) -> None:
-        self.path = Path(path)
+    def __init__(self, path: str | Path | None, columns: list[str], capacity: int,
+                 flush_interval_s: float = 0.25, meta: dict | None = None,
+                 live: LivePublisher | None = None) -> None:
+        self.path = None if path is None else Path(path)
         self.columns = list(columns)
         self.capacity = int(capacity)
         self.flush_interval_s = float(flush_interval_s)
@@ -45,20 +52,26 @@ class TelemetryWriter:
         self.written = 0
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        header = json.dumps({"columns": self.columns, "meta": meta or {}}).encode()
-        self._file = open(self.path, "wb")  # noqa: SIM115 (closed in close())
-        self._file.write(MAGIC + struct.pack("<Q", len(header)) + header)
-        self._file.flush()
+        self.live = live
+        self.live_error = ""    # why the live view was switched off (a viewer's fault never stops the file)
+        self._wait_s = self.flush_interval_s if live is None else min(self.flush_interval_s, live.interval_s)
+        self._file = None
+        if self.path is not None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            header = json.dumps({"columns": self.columns, "meta": meta or {}}).encode()
+            self._file = open(self.path, "wb")  # noqa: SIM115 (closed in close())
+            self._file.write(MAGIC + struct.pack("<Q", len(header)) + header)
+            self._file.flush()
 
     @classmethod
-    def for_controller(cls, path: str | Path, controller, meta: dict | None = None) -> TelemetryWriter:
+    def for_controller(cls, path: str | Path | None, controller, meta: dict | None = None,
+                       live: LivePublisher | None = None) -> TelemetryWriter:
         """A writer for a controller's records, sized by its ``telemetry`` settings."""
         from beamctl.rt.controller import RECORD_COLUMNS
 
         settings = controller.config.telemetry
         return cls(path, RECORD_COLUMNS, capacity=int(settings.buffer_time_s * controller.sample_rate_hz),
-                   flush_interval_s=settings.flush_interval_s, meta=meta)
+                   flush_interval_s=settings.flush_interval_s, meta=meta, live=live)
 
     def start(self) -> TelemetryWriter:
         self._thread = threading.Thread(target=self._run, name="telemetry-writer", daemon=True)
@@ -83,24 +96,33 @@ class TelemetryWriter:
             chunks = [self._ring[start:end]]
         else:
             chunks = [self._ring[start:], self._ring[:end]]
-        for chunk in chunks:
-            self._file.write(chunk.astype("<f8", copy=False).tobytes())
+        if self._file is not None:
+            for chunk in chunks:
+                self._file.write(chunk.astype("<f8", copy=False).tobytes())
+        if self.live is not None:       # before the tail moves on: the loop may then reuse the rows
+            try:
+                self.live.publish(chunks, tail)
+            except Exception as exc:    # a fault of the view must not cost the recording
+                self.live_error = f"{type(exc).__name__}: {exc}"
+                self.live = None
         self._tail = head
         self.written = head
 
     def _run(self) -> None:
         while not self._stop.is_set():
             self._drain()
-            self._file.flush()
-            self._stop.wait(self.flush_interval_s)
+            if self._file is not None:
+                self._file.flush()
+            self._stop.wait(self._wait_s)
 
     def close(self) -> None:
-        """Write everything pushed so far and close the file."""
+        """Write everything pushed so far and close the file (the live view gets it too)."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join()
-        if not self._file.closed:
+        if self._file is None or not self._file.closed:
             self._drain()
+        if self._file is not None and not self._file.closed:
             self._file.flush()
             self._file.close()
 

@@ -7,8 +7,10 @@ import json
 import time
 from pathlib import Path
 
+from beamctl.rt.live import check_socket_path
 from beamctl.tools import plots
 from beamctl.tools.experiment import experiment_tables, load_experiment_config, run_experiment
+from beamctl.tools.live import add_live_argument
 from beamctl.tools.outputs import check_dir, write_text
 from beamctl.tools.progress import ProgressBar
 from beamctl.tools.signals import stop_on_signals
@@ -32,6 +34,7 @@ def add_parser(sub) -> None:
                         "(telemetry_<mode>.btl, about 40 MB a run with the default scenario)")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     p.add_argument("--no-paper", action="store_true", help="skip the run with the paper's 500 N switching")
+    add_live_argument(p)
     p.set_defaults(run=run)
 
 
@@ -75,6 +78,8 @@ def run(args: argparse.Namespace) -> int:
     cfg, settings = load_experiment_config(args.config)
     if args.no_paper:
         settings = {**settings, "paper_mode": False}
+    if args.live is not None:
+        check_socket_path(args.live, "--live")
     out = check_dir(args.out, "--out")
     tables = experiment_tables(cfg, settings)
     # The folder holds one experiment's report: a previous one's figures and summaries go
@@ -83,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     start = time.monotonic()
     with ProgressBar("experiment") as bar, stop_on_signals() as stop:
         summary, traces = run_experiment(cfg, settings, tables, out if args.telemetry else None,
-                                         progress=bar, stop=stop)
+                                         progress=bar, stop=stop, live=args.live)
         bar.close()
     summary["wall_time_s"] = time.monotonic() - start
     table = summary_table(summary)
