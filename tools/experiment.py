@@ -219,8 +219,8 @@ def run_mode(mode: str, cfg: ServiceConfig, settings: dict, table: GainTable,
     start = time.perf_counter()
     try:
         if live is not None:
-            publisher = live_view.live_publisher(live, controller, f"beamctl experiment, {mode} run "
-                                                                   f"({cfg.source})")
+            source = f" ({cfg.source})" if cfg.source else ""
+            publisher = live_view.live_publisher(live, controller, f"beamctl experiment, {mode} run{source}")
         if telemetry_dir is not None or publisher is not None:
             path = None if telemetry_dir is None else telemetry_dir / f"telemetry_{mode}.btl"
             telemetry = TelemetryWriter.for_controller(
