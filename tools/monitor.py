@@ -141,7 +141,8 @@ class LiveStore:
             self._cond.wait_for(lambda: self.generation != generation or self.count > count, timeout_s)
             reset = self.generation != generation
             start = 0 if reset else count
-            parts = [rows[max(0, start - first):] for first, rows in self._blocks if first + len(rows) > start]
+            parts = [rows[max(0, start - first):] for first, rows in self._blocks
+                     if first + len(rows) > start]
             rows = np.concatenate(parts) if parts else None
             age = None if self._received_at is None else time.monotonic() - self._received_at
             status = {**self.status, "datagrams": self.datagrams, "datagrams_missed": self.missed,

@@ -25,7 +25,8 @@ def add_parser(sub) -> None:
                        description="Receive the live values that `beamctl run --live` sends and serve "
                                    "a page that draws them on 127.0.0.1; print its URL (with the "
                                    "token that operator commands need).")
-    p.add_argument("--port", type=_port, default=8750, help="TCP port on 127.0.0.1 (default 8750; 0: any free one)")
+    p.add_argument("--port", type=_port, default=8750,
+                   help="TCP port on 127.0.0.1 (default 8750; 0: any free one)")
     p.add_argument("--live", metavar="ADDRESS", default=default_live_path(),
                    help=f"the UNIX socket to listen at (default {default_live_path()}, where --live sends "
                         "without an address)")
