@@ -21,6 +21,8 @@ and scalar arithmetic on precomputed data.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from beamctl.gains.schedule import GainSchedule
@@ -48,6 +50,8 @@ RECORD_COLUMNS = (
     # this sample when its answer was sent (NaN where the HAL does not measure it), and the
     # count of late answers so far (rt/safety.py)
     + ["input_period_us", "answer_age_us", "late_answers"]
+    # an operator's command carried out or refused at this sample (rt/loop.py operator_labels)
+    + ["operator_command"]
     + SIGNAL_COLUMNS
 )
 COL = {name: i for i, name in enumerate(RECORD_COLUMNS)}
@@ -60,6 +64,7 @@ I_LOAD, I_LOAD_FILTERED = COL["load_N"], COL["load_filtered_N"]
 I_SCALE_A, I_SCALE_B, I_STEP_US = COL["scale_A"], COL["scale_B"], COL["step_us"]
 I_INPUT_PERIOD_US, I_ANSWER_AGE_US, I_LATE_ANSWERS = (COL[n] for n in ("input_period_us", "answer_age_us",
                                                                        "late_answers"))
+I_OPERATOR_COMMAND = COL["operator_command"]
 
 # flag bits
 FLAG_SATURATED_A = 1
@@ -69,6 +74,19 @@ FLAG_LOAD_OUT_OF_TABLE = 8
 FLAG_NO_NEW_SAMPLE = 16
 FLAG_FADING_IN = 32
 FLAG_RAMPING_TO_BIAS = 64
+
+
+@dataclass(frozen=True)
+class PreparedTable:
+    """A gain table made ready for a controller (``Controller.prepare_table``), so that a swap
+    in the loop (``use_table``) only rebinds arrays."""
+
+    table: GainTable
+    schedule: GainSchedule
+    buffer: np.ndarray          # [N_COLUMNS + n]: the record, then the compensator's state
+    c0_phi_inv: np.ndarray
+    integral_map: np.ndarray    # T H
+    start_map: np.ndarray
 
 
 class Controller:
@@ -88,31 +106,12 @@ class Controller:
         """``excitation`` [n x 6], volts added to the law's voltages at the first n control steps
         after a start (identification: then bias, or the law alone), clamped to the voltage
         limits; ``law`` False leaves the stacks at bias plus the excitation (open loop)."""
-        self.table = table
         self.config = config
         self.sample_rate_hz = table.design.sample_rate_hz
         self.period = 1.0 / self.sample_rate_hz
-        self.schedule = GainSchedule.from_table(table)
+        self.model_sha256 = table.model_sha256
         self.allocator = Allocator(config.actuators)
-        comp = table.compensator
-        n = comp.n_states
-
-        buffer = np.zeros(N_COLUMNS + n)
-        r = buffer[:N_COLUMNS]
-        self.record = r
-        self.q = r[COL["q_1y"]:COL["q_1y"] + 4]
-        self.u = r[COL["force_y_A_N"]:COL["force_y_A_N"] + 4]
-        self.voltages = r[COL["voltage_a1_V"]:COL["voltage_a1_V"] + 6]
-        # the compensator's signal vector s = [y; xi; u_applied; x_c]: the record's last columns
-        # and the state after them
-        self._signals = buffer[I_SIGNALS:]
-        self.strains = r[COL["strain_y1"]:COL["strain_y1"] + 4]
-        self.xi = r[COL["xi_1y"]:COL["xi_1y"] + 4]
-        self.applied_forces = r[COL["applied_force_y_A_N"]:COL["applied_force_y_A_N"] + 4]
-        self.compensator_state = buffer[N_COLUMNS:]
-        self._c0_phi_inv = np.ascontiguousarray(table.c0_phi_inv)
-        self._integral_map = np.ascontiguousarray(self.period * comp.h)      # T H
-        self._start_map = np.ascontiguousarray(comp.start)
+        self._bind(self.prepare_table(table))
         self._force_matrix = np.ascontiguousarray(self.allocator.geometry.force_matrix())
         self._dxi = np.zeros(4)
         self._du = np.zeros(4)
@@ -135,6 +134,63 @@ class Controller:
         self._start_samples = max(1, round(config.start_ramp_time * self.sample_rate_hz))
         self._steps_since_start = 0
         self.voltages[:] = self._bias
+        self.record[I_LOAD] = np.nan        # no load seen yet (a start then keeps the schedule's)
+
+    # -- the gain table ----------------------------------------------------------------------------
+    def prepare_table(self, table: GainTable) -> PreparedTable:
+        """Everything the step needs of ``table`` (its schedule, its maps, a record buffer sized
+        for its compensator), made ready off the loop for ``use_table``. A table for another
+        sample rate or another model than this controller's is refused (ValueError)."""
+        rate = table.design.sample_rate_hz
+        if rate != self.sample_rate_hz:
+            raise ValueError(f"the table runs at {rate:g} Hz, the controller at {self.sample_rate_hz:g} Hz")
+        if table.model_sha256 != self.model_sha256:
+            raise ValueError(f"the table was designed for the model with SHA-256 {table.model_sha256}, "
+                             f"the controller runs the model with SHA-256 {self.model_sha256}")
+        comp = table.compensator
+        return PreparedTable(table=table, schedule=GainSchedule.from_table(table),
+                             buffer=np.zeros(N_COLUMNS + comp.n_states),
+                             c0_phi_inv=np.ascontiguousarray(table.c0_phi_inv),
+                             integral_map=np.ascontiguousarray(self.period * comp.h),      # T H
+                             start_map=np.ascontiguousarray(comp.start))
+
+    def use_table(self, prepared: PreparedTable) -> None:
+        """Run the table of ``prepared`` (``prepare_table``) from the next step on. Only at bias
+        and not controlling: ARMED, or FAULT once the ramp has reached bias. The record moves
+        into the new buffer (``record`` is then another array), the compensator rests and the
+        schedule starts at the latest load; nothing is allocated."""
+        state = self.supervisor.state
+        if state not in (State.ARMED, State.FAULT) or not self.at_bias:
+            raise TransitionError(f"cannot change the gain table in state {state.name}"
+                                  + ("" if self.at_bias else " before the voltages have ramped to bias"))
+        buffer = prepared.buffer
+        np.copyto(buffer[:N_COLUMNS], self.record)
+        buffer[N_COLUMNS:] = 0.0
+        self._bind(prepared)
+        self.safety.voltages = self.voltages
+        self.schedule.reset(self.record[I_LOAD])
+
+    def _bind(self, p: PreparedTable) -> None:
+        """The table's schedule and maps, and the views of its buffer: the record, and the
+        compensator's state after it."""
+        self.table = p.table
+        self.schedule = p.schedule
+        buffer = p.buffer
+        r = buffer[:N_COLUMNS]
+        self.record = r
+        self.q = r[COL["q_1y"]:COL["q_1y"] + 4]
+        self.u = r[COL["force_y_A_N"]:COL["force_y_A_N"] + 4]
+        self.voltages = r[COL["voltage_a1_V"]:COL["voltage_a1_V"] + 6]
+        # the compensator's signal vector s = [y; xi; u_applied; x_c]: the record's last columns
+        # and the state after them
+        self._signals = buffer[I_SIGNALS:]
+        self.strains = r[COL["strain_y1"]:COL["strain_y1"] + 4]
+        self.xi = r[COL["xi_1y"]:COL["xi_1y"] + 4]
+        self.applied_forces = r[COL["applied_force_y_A_N"]:COL["applied_force_y_A_N"] + 4]
+        self.compensator_state = buffer[N_COLUMNS:]
+        self._c0_phi_inv = p.c0_phi_inv
+        self._integral_map = p.integral_map
+        self._start_map = p.start_map
 
     # -- lifecycle -----------------------------------------------------------------------------
     @property
@@ -163,15 +219,18 @@ class Controller:
         self.allocator.scale_a = self.allocator.scale_b = 1.0
         self.record[I_TIME] = np.nan if sample is None else sample.timestamp
         if sample is not None:
+            self.record[I_LOAD] = sample.axial_load
             self.schedule.reset(sample.axial_load)
             self.strains[:] = sample.strains
             np.dot(self._c0_phi_inv, self.strains, out=self.q)
 
     def start(self) -> None:
         """Start controlling from the latest sample: integrator at zero, the compensator at
-        rest on that sample (no kick however long the controller sat armed), voltages faded in
-        from bias. A start on a non-finite strain faults at once."""
+        rest on that sample and the schedule settled at its load (no kick however long the
+        controller sat armed), voltages faded in from bias. A start on a non-finite strain
+        faults at once."""
         self.supervisor.start()
+        self.schedule.reset(self.record[I_LOAD])
         self._steps_since_start = 0
         self.excitation_index = 0
         self.xi[:] = 0.0

@@ -25,10 +25,19 @@ The loop looks at it every cycle: the voltages ramp to bias, telemetry is flushe
 returns normally; ``RunResult.signal_received`` names the signal, so that the caller decides
 what it means (the service: the operator's stop; a simulated experiment: cut short). Without a
 request, a KeyboardInterrupt leaves the loop through the emergency ramp to bias.
+
+Operator commands (start, stop, rearm, gains: ``OperatorCommand``) come from another thread (the
+service's control socket, tools/control.py) through ``post``; the loop carries out or refuses
+a pending command after the cycle's read, before its step (a re-arm starts from the cycle's
+sample), and records it in the sample's ``operator_command`` column (``operator_labels``). A
+cycle without a pending command checks one attribute. The loop alone changes the controller:
+a gain table comes prepared (loaded, checked, its arrays allocated) and the loop only swaps it in.
 """
 
 from __future__ import annotations
 
+import math
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -42,9 +51,12 @@ from beamctl.rt.controller import (
     I_FLAGS,
     I_INPUT_PERIOD_US,
     I_LATE_ANSWERS,
+    I_LOAD,
+    I_OPERATOR_COMMAND,
     I_STATE,
     I_STEP_US,
     Controller,
+    PreparedTable,
 )
 from beamctl.rt.safety import Fault, State
 from beamctl.rt.telemetry import TelemetryWriter
@@ -66,6 +78,88 @@ class StopRequest:
             self.signal_name = signal_name
         if not self.reason:
             self.reason = reason
+
+
+# the commands an operator gives the loop; in the telemetry's operator_command column the i-th
+# is 2 i + 1 when carried out and 2 i + 2 when refused (0: no command at that sample)
+OPERATOR_COMMANDS = ("start", "stop", "rearm", "gains")
+
+
+def operator_code(command: str, carried_out: bool) -> int:
+    """The ``operator_command`` code of ``command`` carried out or refused."""
+    return 2 * OPERATOR_COMMANDS.index(command) + (1 if carried_out else 2)
+
+
+def operator_labels() -> dict[int, str]:
+    """{code: label} of the telemetry's ``operator_command`` column: 0 "none", 1 "start",
+    2 "start refused", 3 "stop", ..."""
+    labels = {0: "none"}
+    for name in OPERATOR_COMMANDS:
+        labels[operator_code(name, True)] = name
+        labels[operator_code(name, False)] = f"{name} refused"
+    return labels
+
+
+class OperatorCommand:
+    """An operator's command for the loop: another thread posts it (``ControlLoop.post``) and
+    waits for its outcome (``wait``, then ``outcome``: "carried out" or "refused", with the
+    ``refusal`` saying why and ``transition`` the state before and after). ``gains`` carries the
+    table prepared off the loop (``Controller.prepare_table``); a command refused before it
+    reaches the loop (a table that failed its checks) is posted with its ``refusal`` so that the
+    loop records it in the telemetry like any other. A waiter that gives up calls ``cancel``."""
+
+    def __init__(self, name: str, table: PreparedTable | None = None, refusal: str = "") -> None:
+        if name not in OPERATOR_COMMANDS:
+            raise ValueError(f"operator command {name!r}: expected one of {OPERATOR_COMMANDS}")
+        if name == "gains" and table is None and not refusal:
+            raise ValueError("a gains command needs the prepared table (or the reason it was refused)")
+        self.name = name
+        self.table = table
+        self.refusal = refusal
+        self.outcome = ""               # "carried out" or "refused" once the loop has decided
+        self.transition = ""            # "ARMED -> RUNNING"
+        self.cycle = -1                 # the loop's cycle (telemetry row) that recorded it
+        self._lock = threading.Lock()
+        self._done = threading.Event()
+        self._taken = False
+        self._cancelled = False
+
+    @property
+    def code(self) -> int:
+        """Its ``operator_command`` code (once decided)."""
+        return operator_code(self.name, self.outcome == "carried out")
+
+    def wait(self, timeout_s: float) -> bool:
+        """Wait up to ``timeout_s`` for the outcome; True once decided."""
+        return self._done.wait(timeout_s)
+
+    def cancel(self) -> bool:
+        """Withdraw the command unless the loop has taken it up; True when withdrawn (it will
+        never be carried out), False when the outcome is decided or about to be."""
+        with self._lock:
+            if self._taken:
+                return False
+            self._cancelled = True
+            return True
+
+    @property
+    def cancelled(self) -> bool:
+        return self._cancelled
+
+    def _take(self) -> bool:
+        with self._lock:
+            if self._cancelled:
+                return False
+            self._taken = True
+            return True
+
+    def _decide(self, refusal: str, transition: str = "", cycle: int = -1) -> None:
+        self.refusal = refusal
+        self.outcome = "refused" if refusal else "carried out"
+        self.transition = transition
+        self.cycle = cycle
+        self._done.set()
+
 
 
 @dataclass
@@ -115,6 +209,9 @@ class ControlLoop:
         self.backlog_discarded = 0
         self._stop_signal = ""
         self._signal_received = ""
+        self._command: OperatorCommand | None = None
+        self._command_lock = threading.Lock()
+        self.ended = False              # run() has returned: no command is carried out any more
 
     # -- stopping ---------------------------------------------------------------------------------
     def request_stop(self, why: str = "request") -> None:
@@ -126,6 +223,96 @@ class ControlLoop:
         """Operator acknowledgement (thread- and signal-safe): a latched fault is cleared and
         the controller starts again from bias at the next sample."""
         self._rearm_requested = True
+
+    # -- operator commands --------------------------------------------------------------------------
+    def post(self, command: OperatorCommand) -> None:
+        """Hand ``command`` to the loop (thread-safe): it is decided at the next cycle (a re-arm at
+        the next cycle with a sample). Refused at once, never reaching the loop, while another
+        command is pending or once the loop has ended."""
+        with self._command_lock:
+            pending = self._command
+            if self.ended:
+                command._decide(f"the control loop has ended ({self.controller.state.name})")
+            elif pending is not None and not pending.cancelled:
+                command._decide(f"the {pending.name} command before it is still being carried out")
+            else:
+                self._command = command
+
+    def status(self) -> dict:
+        """What an operator sees (safe to call from any thread; the values are a snapshot):
+        state, fault and its reason, whether the stacks are at bias, the load-cell reading in N
+        (None before the first sample) and the cycles run."""
+        c = self.controller
+        load = float(c.record[I_LOAD])
+        return {"state": c.state.name, "fault": c.supervisor.fault.name, "reason": c.supervisor.reason(),
+                "at_bias": c.at_bias, "axial_load_n": load if math.isfinite(load) else None,
+                "cycles": self.cycles}
+
+    def refusal(self, name: str) -> str:
+        """Why the controller cannot take the operator command ``name`` now ("" if it can); safe
+        to ask from another thread, but only the loop's own answer, when it carries the command
+        out, decides."""
+        c = self.controller
+        state = c.state
+        if name == "stop":
+            return ""
+        if state == State.STOPPING or self._stop_signal:
+            return "the service is stopping"
+        if state == State.INIT:
+            return "the controller is not armed yet (no first sample from the HAL)"
+        if name == "start":
+            if state == State.RUNNING:
+                return "the controller is already running"
+            if state == State.FAULT:
+                return f"a fault is latched ({c.supervisor.reason()}): re-arm first"
+            return ""
+        if state == State.RUNNING:
+            return ("the controller is running: no fault to re-arm" if name == "rearm" else
+                    "the controller is running: the gain table changes only at bias (ARMED, or "
+                    "FAULT once the ramp has reached bias)")
+        if name == "rearm" and state != State.FAULT:
+            return f"no fault is latched ({state.name}): nothing to re-arm"
+        if not c.at_bias:
+            return f"the stacks are still ramping to bias after the fault: {name} once they are at bias"
+        return ""
+
+    def _carry_out(self, sample) -> float:
+        """Decide the pending command at this cycle's ``sample``; return its telemetry code (0.0
+        when there is none to record: withdrawn, or a re-arm waiting for a sample)."""
+        command = self._command
+        refusal = command.refusal or self.refusal(command.name)
+        if not refusal and command.name == "rearm" and sample is None:
+            return 0.0                  # a re-arm starts from a sample: the next one
+        with self._command_lock:
+            self._command = None
+        if not command._take():
+            return 0.0
+        c = self.controller
+        before = c.state
+        if not refusal:
+            name = command.name
+            if name == "start":
+                c.start()
+            elif name == "stop":
+                self.request_stop("operator")
+                if c.state not in (State.STOPPING, State.STOPPED):
+                    c.request_stop()
+            elif name == "rearm":
+                c.rearm(sample)
+                if self.start:
+                    c.start()
+            else:
+                c.use_table(command.table)
+        command._decide(refusal, f"{before.name} -> {c.state.name}", self.cycles)
+        return float(command.code)
+
+    def _end_commands(self) -> None:
+        """The loop has ended: a pending command is refused, later ones too (``post``)."""
+        with self._command_lock:
+            self.ended = True
+            command, self._command = self._command, None
+        if command is not None and command._take():
+            command._decide(f"the control loop ended ({self.controller.state.name}) before carrying it out")
 
     # -- the loop ---------------------------------------------------------------------------------
     def run(self, require_rt: bool = False, acquire_rt: bool = True) -> RunResult:
@@ -143,6 +330,7 @@ class ControlLoop:
             finally:
                 self._announce()
         finally:
+            self._end_commands()
             if acquire_rt:
                 realtime.release()
             if self.telemetry is not None:
@@ -263,11 +451,16 @@ class ControlLoop:
                     self._rearm_requested = False
                     c.rearm(sample)
                     c.start()
+            operator = 0.0
+            if self._command is not None:
+                operator = self._carry_out(sample)
+                record = c.record       # a new gain table brings its own record
             if sample is None and not timer:
                 voltages = c.step(None, (t1 - self._last_sample) / period)
             else:
                 voltages = c.step(sample)
             t2 = clock()
+            record[I_OPERATOR_COMMAND] = operator
             flags = int(record[I_FLAGS])
             if timer or sample is not None or flags & FLAG_RAMPING_TO_BIAS:
                 try:

@@ -1,4 +1,9 @@
-"""Shared fixtures: the paper's model is built once per test session."""
+"""Shared fixtures: the paper's model is built once per test session; every test has a control
+socket path of its own."""
+
+import shutil
+import tempfile
+from pathlib import Path
 
 import pytest
 from hypothesis import settings
@@ -27,3 +32,14 @@ def paper_model(paper_params):
 @pytest.fixture(scope="session")
 def paper_reduced(paper_model):
     return reduce(paper_model)
+
+
+@pytest.fixture(autouse=True)
+def control_socket(monkeypatch):
+    """A control socket path of the test's own (short: a UNIX socket's path holds 107 bytes), so
+    that a service a test starts, in process or not, never meets another test's."""
+    directory = tempfile.mkdtemp(prefix="bc-", dir="/tmp" if Path("/tmp").is_dir() else None)
+    path = Path(directory) / "control.sock"
+    monkeypatch.setenv("BEAMCTL_CONTROL_SOCKET", str(path))
+    yield path
+    shutil.rmtree(directory, ignore_errors=True)

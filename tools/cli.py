@@ -44,7 +44,16 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message}\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser of every command, or with ``command`` "ctl" of that one alone: the operator's
+    commands to a running service need only the standard library, and answer without waiting
+    seconds for numpy and scipy to load."""
+    from beamctl.tools import ctl_cmd
+
+    if command == "ctl":
+        parser = _Parser(prog="beamctl")
+        ctl_cmd.add_parser(parser.add_subparsers(dest="command", metavar="COMMAND", required=True))
+        return parser
     from beamctl.gains.build import tool_version
     from beamctl.tools import (
         bench_cmd,
@@ -71,6 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
     log_cmd.add_parser(sub)
     plant_cmd.add_parser(sub)
     run_cmd.add_parser(sub)
+    ctl_cmd.add_parser(sub)
     monitor_cmd.add_parser(sub)
     bench_cmd.add_parser(sub)
     study_cmd.add_parser(sub)
@@ -79,7 +89,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _command_name(args: argparse.Namespace) -> str:
     """``beamctl gains build``: the command and its action, as the user typed them."""
-    words = [getattr(args, key, None) for key in ("command", "gains_command", "log_command")]
+    words = [getattr(args, key, None) for key in ("command", "gains_command", "log_command", "ctl_command")]
     return " ".join(["beamctl", *(w for w in words if w)])
 
 
@@ -103,8 +113,9 @@ def _run(argv: list[str] | None) -> int:
 
     name = "beamctl"
     try:
+        words = sys.argv[1:] if argv is None else argv
         try:
-            args = build_parser().parse_args(argv)
+            args = (build_parser("ctl") if words[:1] == ["ctl"] else build_parser()).parse_args(words)
         except SystemExit as exc:      # --help, or a flag argparse refused (it printed why)
             return int(exc.code or 0)
         name = _command_name(args)

@@ -8,6 +8,11 @@ ramps the stacks to bias and holds them there, latched, until the operator
 re-arms with SIGUSR1 (``systemctl kill -s USR1 beamctl``) or stops the service. Under systemd
 it reports readiness and feeds the watchdog from the control loop. With ``--live`` the telemetry
 writer also sends decimated records to ``beamctl monitor`` (rt/live.py), never waiting for it.
+
+The operator commands the running service over its control socket (tools/control.py, ``beamctl
+ctl``): start (after ``--hold``, which arms and waits at bias), stop, rearm, gains TABLE, status.
+The socket is bound before anything else starts, so a second service on the same socket is
+refused in one line.
 """
 
 from __future__ import annotations
@@ -19,7 +24,8 @@ import sys
 import threading
 from pathlib import Path
 
-from beamctl.hal.base import HalError
+from beamctl.gains.table import GainTable
+from beamctl.hal.base import HalBase, HalError
 from beamctl.rt import realtime
 from beamctl.rt.controller import Controller
 from beamctl.rt.live import check_socket_path
@@ -27,9 +33,17 @@ from beamctl.rt.loop import ControlLoop
 from beamctl.rt.telemetry import TelemetryWriter
 from beamctl.tools import live as live_view
 from beamctl.tools.argtypes import seconds
+from beamctl.tools.control import ControlError, ControlServer, default_socket_path
 from beamctl.tools.outputs import check_file, check_new_file
 from beamctl.tools.sdnotify import Notifier
-from beamctl.tools.service import build_hal, check_voltage_range, load_gain_table, load_service_config
+from beamctl.tools.service import (
+    ServiceConfig,
+    build_hal,
+    check_voltage_range,
+    load_gain_table,
+    load_service_config,
+    table_for_swap,
+)
 from beamctl.tools.signals import stop_on_signals
 
 
@@ -42,6 +56,12 @@ def add_parser(sub) -> None:
                    help="stop after S seconds (default: run.duration_s; 0 until stopped)")
     p.add_argument("--require-rt", action="store_true",
                    help="refuse to run without SCHED_FIFO, affinity and locked memory")
+    p.add_argument("--hold", action="store_true",
+                   help="arm and hold the stacks at bias until `beamctl ctl start`")
+    p.add_argument("--control-socket", metavar="PATH",
+                   help="the control socket for `beamctl ctl` (default: control.socket, else "
+                        "$BEAMCTL_CONTROL_SOCKET, /run/beamctl/control.sock, $XDG_RUNTIME_DIR/beamctl/"
+                        "control.sock or /tmp/beamctl-UID/control.sock)")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
     live_view.add_live_argument(p)
     p.set_defaults(run=run)
@@ -73,6 +93,25 @@ def run(args: argparse.Namespace) -> int:
         return 2
     check_voltage_range(cfg, hal)
     controller = Controller(table, cfg.controller)
+    try:
+        server = ControlServer(args.control_socket or cfg.control_socket or default_socket_path())
+    except ControlError as exc:
+        print(f"beamctl run: error: {exc}", file=sys.stderr)
+        return 2
+    try:
+        return _serve(args, cfg, path, table, hal, controller, notifier, server)
+    finally:
+        server.close()
+
+
+def _log(line: str) -> None:
+    """A line of the service's log (stderr, where systemd's journal takes it)."""
+    print(f"beamctl run: {line}", file=sys.stderr, flush=True)
+
+
+def _serve(args: argparse.Namespace, cfg: ServiceConfig, path: Path, table: GainTable, hal: HalBase,
+           controller: Controller, notifier: Notifier, server: ControlServer) -> int:
+    """The service with its control socket bound: telemetry, the loop, the summary."""
     live = None
     if args.live is not None:
         live = live_view.live_publisher(
@@ -83,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"beamctl run: {cfg.hal.backend} backend, {table.design.sample_rate_hz:g} Hz, "
           f"{cfg.controller.pacing} pacing, gain table {cfg.table_path}, telemetry {path}"
           + (f", live view {live.path}" if live else ""), file=sys.stderr)
+    _log(f"control socket {server.path} (mode 0660: user and group {server.group} may command)")
     # Telemetry starts before the loop asks for SCHED_FIFO (the writer thread must not inherit
     # it); the loop then takes its real-time set-up and only after it opens the HAL, so that no
     # sample queues up while memory is locked and the collector runs.
@@ -97,7 +137,10 @@ def run(args: argparse.Namespace) -> int:
     with stop_on_signals(signal.SIGINT, signal.SIGTERM) as stop:     # the operator's stop
         loop = ControlLoop(controller, hal, telemetry=telemetry, stop_on_fault=False,
                            max_cycles=max_cycles, on_cycle=on_cycle if notifier.watchdog_interval_s else None,
-                           stop=stop)
+                           stop=stop, start=not args.hold)
+        server.serve(loop, table=str(Path(cfg.table_path).absolute()), table_sha256=table.sha256,
+                     prepare_table=lambda table_path: table_for_swap(cfg, hal, controller, table_path),
+                     log=_log)
         if live is not None:
             live_view.watch_loop(live, loop, telemetry)
         rearm = None

@@ -12,6 +12,8 @@ One YAML file, every section optional, every key checked::
     plant:      the simulated beam: plant settings (models/plant.py) and ``model:``, its own
                 beam parameters when it should differ from the controller's model
     run:        {telemetry: path, duration_s: seconds to run (0: until stopped)}
+    control:    {socket: path of the control socket (default: tools/control.py
+                default_socket_path)}
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from typing import Any
 
 from beamctl.config.schema import ConfigError, merge, nonnegative, path, read_yaml, refuse_renamed, validate
 from beamctl.gains.defaults import default_table_path
-from beamctl.gains.table import GainTable, load_table
+from beamctl.gains.table import GainTable, GainTableError, load_table
 from beamctl.hal.base import HalBase
 from beamctl.hal.config import HalConfig, hal_config
 from beamctl.models import build_model
@@ -31,8 +33,9 @@ from beamctl.models.params import ModelParameters, parameters_from_dict
 from beamctl.models.plant import Plant, PlantConfig, plant_config
 from beamctl.rt.allocation import geometry
 from beamctl.rt.config import ControllerConfig, controller_config
+from beamctl.rt.controller import Controller, PreparedTable
 
-SECTIONS = ("model", "gains", "controller", "hal", "plant", "run")
+SECTIONS = ("model", "gains", "controller", "hal", "plant", "run", "control")
 # Keys renamed to carry their unit: a file that still sets an old one is refused, naming the new.
 RENAMED_RUN_KEYS = {"duration": "duration_s"}
 
@@ -48,6 +51,7 @@ class ServiceConfig:
     plant_model: dict = field(default_factory=dict)    # the plant's own parameter overrides
     telemetry: str = ""
     duration_s: float = 0.0
+    control_socket: str = ""                           # "": the default path
 
 
 def _section(data: dict, name: str, source: str) -> dict:
@@ -80,6 +84,8 @@ def service_config(data: dict | None = None, source: str = "") -> ServiceConfig:
     plant_model = plant.pop("model", None) or {}
     if not isinstance(plant_model, dict):
         raise ConfigError("plant.model", plant_model, "a mapping of model parameters", source)
+    control = validate({"socket": "", **_section(data, "control", source)}, {"socket": path()}, source,
+                       "control.")
     controller = controller_config(_section(data, "controller", source), source, "controller.")
     hal = hal_config(_section(data, "hal", source), source)
     if hal.backend == "can" and controller.pacing == "timer":
@@ -88,7 +94,8 @@ def service_config(data: dict | None = None, source: str = "") -> ServiceConfig:
                           "timer of the PC's would let frames queue up and add delay", source)
     return ServiceConfig(
         source=source, model=params, table_path=table, controller=controller, hal=hal, plant=plant,
-        plant_model=plant_model, telemetry=run["telemetry"], duration_s=run["duration_s"])
+        plant_model=plant_model, telemetry=run["telemetry"], duration_s=run["duration_s"],
+        control_socket=control["socket"])
 
 
 def model_file_overrides(path: str | Path, what: str = "--config") -> dict:
@@ -123,15 +130,37 @@ def load_service_config(path: str | Path | None) -> ServiceConfig:
     return service_config(read_yaml(path), str(path))
 
 
-def load_gain_table(cfg: ServiceConfig) -> GainTable:
-    """The configured table, refused unless designed for exactly the configured model, its
-    content matches its SHA-256, and its closed-loop check is there and passed."""
-    if not cfg.table_path.is_file():
-        raise ConfigError("gains.table", str(cfg.table_path),
+def load_gain_table(cfg: ServiceConfig, path: str | Path | None = None) -> GainTable:
+    """The configured table (or the one at ``path``, which an operator asks the running service
+    to swap in), refused unless designed for exactly the configured model, its content matches
+    its SHA-256, and its closed-loop check is there and passed."""
+    table_path = cfg.table_path if path is None else Path(path)
+    if not table_path.is_file():
+        raise ConfigError("gains.table" if path is None else "table", str(table_path),
                           f"an existing gain table file (relative paths are taken from the current "
-                          f"directory; build one with `beamctl gains build --out {cfg.table_path}`)",
-                          cfg.source)
-    return load_table(cfg.table_path, cfg.model)
+                          f"directory; build one with `beamctl gains build --out {table_path}`)",
+                          cfg.source if path is None else "")
+    return load_table(table_path, cfg.model)
+
+
+def table_for_swap(cfg: ServiceConfig, hal: HalBase, controller: Controller,
+                   path: str | Path) -> PreparedTable:
+    """The gain table at ``path`` made ready for the running ``controller`` to swap in (at bias),
+    through the checks of the service's start (``load_gain_table``, ``check_voltage_range``)
+    and the rig's: the table runs at the rate of the HAL and assumes the I/O chain (delay,
+    filters) of the table running now. ConfigError (a ValueError) says why a table is refused."""
+    table = load_gain_table(cfg, path)
+    check_voltage_range(cfg, hal)
+    source = str(path)
+    rate = table.design.sample_rate_hz
+    if rate != hal.sample_rate_hz:
+        raise GainTableError("design.sample_rate_hz", rate,
+                             f"the rate the service runs at, {hal.sample_rate_hz:g} Hz", source)
+    running = controller.table.design.io
+    if table.design.io != running:
+        raise GainTableError("design.io", table.design.io.to_dict(),
+                             f"the I/O chain of the running table, {running.to_dict()} (the rig's)", source)
+    return controller.prepare_table(table)
 
 
 def plant_geometry(cfg: ServiceConfig) -> StackGeometry:

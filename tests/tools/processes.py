@@ -13,9 +13,11 @@ _AT_A_TERMINAL = ("import signal, sys; signal.signal(signal.SIGINT, signal.defau
 
 
 def beamctl(*argv: str, cwd: Path, **kwargs) -> subprocess.Popen:
-    """``beamctl`` in its own process (stdout and stderr piped), SIGINT handled as at a terminal."""
-    return subprocess.Popen([sys.executable, "-c", _AT_A_TERMINAL, *argv], cwd=cwd,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, **kwargs)
+    """``beamctl`` in its own process (stdout and stderr piped unless ``kwargs`` say where),
+    SIGINT handled as at a terminal."""
+    kwargs.setdefault("stdout", subprocess.PIPE)
+    kwargs.setdefault("stderr", subprocess.PIPE)
+    return subprocess.Popen([sys.executable, "-c", _AT_A_TERMINAL, *argv], cwd=cwd, **kwargs)
 
 
 def interrupt_when(process: subprocess.Popen, marker: bytes, timeout_s: float = 300.0,
