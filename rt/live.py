@@ -3,12 +3,12 @@ the telemetry writer's thread, never from the control loop.
 
 The writer (rt/telemetry.py) hands the publisher the rows of each drain. The publisher keeps
 one row in ``decimation`` (the last of each group, by the row's index since the run began, so
-that drains of any length pick the same rows); the ``flags`` column of a kept row is the OR of
-its whole group, so that a saturation shorter than a group still shows. It sends the kept rows
-to a UNIX datagram socket that the viewer binds, without waiting: when nobody listens (no
-socket file, or a stale one) or the viewer reads too slowly (its queue is full), the datagram
-is dropped and counted. A viewer that stops, stalls or was never started costs the service a
-failed ``sendto`` per datagram and nothing else.
+that drains of any length pick the same rows), and the run's last row (its final state); the
+``flags`` column of a kept row is the OR of its whole group, so that a saturation shorter than
+a group still shows. It sends the kept rows to a UNIX datagram socket that the viewer binds,
+without waiting: when nobody listens (no socket file, or a stale one) or the viewer reads too
+slowly (its queue is full), the datagram is dropped and counted. A viewer that stops, stalls
+or was never started costs the service a failed ``sendto`` per datagram and nothing else.
 
 Datagram: ``MAGIC``, a 4-byte little-endian length, a JSON header of that length, then
 ``header["rows"]`` rows of ``len(header["run"]["columns"])`` little-endian float64. The
@@ -42,15 +42,6 @@ MAX_SOCKET_PATH_BYTES = 107     # sun_path holds 108 bytes with the terminating 
 
 class LiveError(ValueError):
     """A live-view address or datagram that cannot be used."""
-
-
-def default_live_path() -> str:
-    """Where ``beamctl monitor`` listens and ``--live`` sends unless told otherwise:
-    ``$XDG_RUNTIME_DIR/beamctl/live.sock``, else ``/tmp/beamctl-<uid>/live.sock`` (one user's
-    private directory: whoever may write the socket may feed the page)."""
-    runtime = os.environ.get("XDG_RUNTIME_DIR")
-    base = os.path.join(runtime, "beamctl") if runtime else f"/tmp/beamctl-{os.geteuid()}"
-    return os.path.join(base, "live.sock")
 
 
 def check_socket_path(path: str | Path, what: str) -> str:
@@ -106,19 +97,25 @@ class LivePublisher:
     def begin_run(self, **meta) -> None:
         """A new run (its rows count from 0 again): its description, over the publisher's."""
         self._flags_carry = 0
+        self._last_kept = -1            # the index of the last row kept
         run = {**self._meta, **meta, "columns": self.columns, "sample_rate_hz": self.sample_rate_hz,
                "decimation": self.decimation, "run_id": f"{os.getpid()}-{time.time_ns()}"}
         self._run_json = json.dumps(run)
 
-    def publish(self, chunks: Sequence[np.ndarray], first_index: int) -> None:
+    def publish(self, chunks: Sequence[np.ndarray], first_index: int, final: bool = False) -> None:
         """Rows ``first_index``, ``first_index + 1``, ... of the run (``chunks`` in order, as the
-        writer drained them): keep one in ``decimation`` and send them."""
+        writer drained them): keep one in ``decimation`` and send them. The ``final`` drain also
+        sends the run's last row (its final state)."""
         n = sum(len(c) for c in chunks)
         if n == 0:
             return
         block = chunks[0] if len(chunks) == 1 else np.concatenate(chunks)
         k = self.decimation
         picks = np.arange((k - 1 - first_index) % k, n, k)
+        if final and (not len(picks) or picks[-1] != n - 1) and first_index + n - 1 != self._last_kept:
+            picks = np.append(picks, n - 1)
+        if len(picks):
+            self._last_kept = first_index + int(picks[-1])
         kept = block[picks]
         if self._i_flags is not None:
             flags = block[:, self._i_flags].astype(np.int64)

@@ -87,9 +87,12 @@ class TelemetryWriter:
         np.copyto(self._rows[head % self.capacity], record)
         self._head = head + 1
 
-    def _drain(self) -> None:
+    def _drain(self, final: bool = False) -> None:
         head, tail = self._head, self._tail
         if head == tail:
+            if final and head:          # the view's last word: the run's final row
+                last = (head - 1) % self.capacity
+                self._publish([self._ring[last:last + 1]], head - 1, final)
             return
         start, end = tail % self.capacity, head % self.capacity
         if start < end:
@@ -99,14 +102,18 @@ class TelemetryWriter:
         if self._file is not None:
             for chunk in chunks:
                 self._file.write(chunk.astype("<f8", copy=False).tobytes())
-        if self.live is not None:       # before the tail moves on: the loop may then reuse the rows
-            try:
-                self.live.publish(chunks, tail)
-            except Exception as exc:    # a fault of the view must not cost the recording
-                self.live_error = f"{type(exc).__name__}: {exc}"
-                self.live = None
+        self._publish(chunks, tail, final)     # before the tail moves on: the loop may then reuse the rows
         self._tail = head
         self.written = head
+
+    def _publish(self, chunks: list[np.ndarray], first_index: int, final: bool) -> None:
+        if self.live is None:
+            return
+        try:
+            self.live.publish(chunks, first_index, final)
+        except Exception as exc:        # a fault of the view must not cost the recording
+            self.live_error = f"{type(exc).__name__}: {exc}"
+            self.live = None
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -121,7 +128,7 @@ class TelemetryWriter:
         if self._thread is not None:
             self._thread.join()
         if self._file is None or not self._file.closed:
-            self._drain()
+            self._drain(final=True)
         if self._file is not None and not self._file.closed:
             self._file.flush()
             self._file.close()

@@ -2,24 +2,38 @@
 described for the page (labels of states, faults and flags, voltage limits, the table's load
 range, the critical load) and extended by the deflection in metres, which the record does not
 hold (the largest lateral deflection along the beam from q, as ``beamctl experiment``
-measures it)."""
+measures it).
+
+Where the view's socket is by default (``default_live_path``): ``$BEAMCTL_LIVE_SOCKET``, else
+``live.sock`` beside the service's control socket (tools/control.py: /run/beamctl for the lab's
+service, else $XDG_RUNTIME_DIR/beamctl or /tmp/beamctl-<uid>), so that ``beamctl monitor`` and
+``beamctl run --live`` find each other with their defaults.
+"""
 
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 from beamctl.models import build_model, critical_load
 from beamctl.rt import controller as rec
 from beamctl.rt.controller import Controller
-from beamctl.rt.live import Derived, LivePublisher, default_live_path
+from beamctl.rt.live import Derived, LivePublisher
 from beamctl.rt.safety import DESCRIPTIONS, Fault, State
+from beamctl.tools.control import default_socket_path
 
 FLAGS = {"saturated_A": rec.FLAG_SATURATED_A, "saturated_B": rec.FLAG_SATURATED_B,
          "integrator_held": rec.FLAG_INTEGRATOR_HELD, "load_out_of_table": rec.FLAG_LOAD_OUT_OF_TABLE,
          "no_new_sample": rec.FLAG_NO_NEW_SAMPLE, "fading_in": rec.FLAG_FADING_IN,
          "ramping_to_bias": rec.FLAG_RAMPING_TO_BIAS}
 DEFLECTION_COLUMNS = ("deflection_m", "deflection_y_m", "deflection_z_m")
+SOCKET_ENV = "BEAMCTL_LIVE_SOCKET"
+
+
+def default_live_path() -> str:
+    """``$BEAMCTL_LIVE_SOCKET``, else ``live.sock`` beside the default control socket."""
+    return os.environ.get(SOCKET_ENV) or str(default_socket_path().with_name("live.sock"))
 
 
 def add_live_argument(p: argparse.ArgumentParser) -> None:

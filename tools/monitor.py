@@ -38,12 +38,15 @@ import time
 import urllib.parse
 from dataclasses import dataclass
 from importlib import resources
+from pathlib import Path
 
 import numpy as np
 
-from beamctl.rt.live import LiveError, check_socket_path, decode, default_live_path
+from beamctl.rt.live import LiveError, check_socket_path, decode
+from beamctl.tools import control
+from beamctl.tools.control import COMMANDS, SOCKET_MODE
+from beamctl.tools.live import default_live_path
 
-COMMANDS = ("status", "start", "stop", "rearm", "gains")
 MAX_BODY_BYTES = 4096
 # the columns the page draws or shows (a run without one of them sends the others)
 PAGE_COLUMNS = ("time_s", "sequence", "state", "fault", "flags", "load_N", "load_filtered_N",
@@ -193,50 +196,25 @@ def parse_command(body: bytes) -> dict:
     return {"command": command}
 
 
-def forward_command(control_path: str | None, payload: dict) -> tuple[int, dict]:
-    """(HTTP status, reply) of a checked command sent to the service's control socket."""
-    # the operator commands (tools/control.py) come with `beamctl ctl`; a monitor without them says so
+def forward_command(control_path: str, payload: dict) -> tuple[int, dict]:
+    """(HTTP status, reply) of a checked command sent to the service's control socket: the
+    service's reply (which may refuse it, saying why), or 503 when no service answers."""
     try:
-        from beamctl.tools import control
-    except ImportError:
-        return 501, {"ok": False, "command": payload["command"],
-                     "message": "this beamctl has no operator commands (beamctl ctl)"}
-    path = control_path or control.default_socket_path()
-    try:
-        return 200, control.request(path, payload, timeout_s=10.0)
+        return 200, control.request(control_path, payload, timeout_s=10.0)
     except control.ControlError as exc:
         return 503, {"ok": False, "command": payload["command"], "message": str(exc)}
 
 
-def default_control_path() -> str | None:
-    """The service's control socket by default (None in a beamctl without operator commands)."""
-    try:
-        from beamctl.tools import control
-    except ImportError:
-        return None
-    return control.default_socket_path()
-
-
 def bind_live_socket(path: str) -> socket.socket:
-    """The monitor's end of the live view, bound at ``path`` (mode 0600: only this user, or
-    root, may feed the page). The default path's directory is made private (0700) if missing;
-    a socket file left by a monitor that was killed is replaced; one that a running monitor
-    holds is refused."""
+    """The monitor's end of the live view, bound at ``path``. Its directory and its file's mode
+    are the control socket's (tools/control.py: the private directory in /tmp made 0700, the
+    file 0660): who may command the service may feed the page. A socket file left by a monitor
+    that was killed is replaced; one that a running monitor holds is refused."""
     path = check_socket_path(path, "--live")
-    directory = os.path.dirname(path) or "."
-    if path == default_live_path():
-        try:
-            os.mkdir(directory, 0o700)
-        except FileExistsError:
-            pass
-        except OSError as exc:
-            raise LiveError(f"--live {path}: cannot create its directory ({exc.strerror})") from None
-        info = os.lstat(directory)
-        if not stat.S_ISDIR(info.st_mode) or info.st_uid != os.geteuid() or info.st_mode & 0o022:
-            raise LiveError(f"--live {path}: {directory} must be a directory of this user that nobody "
-                            f"else may write to (whoever can may feed the page)")
-    elif not os.path.isdir(directory):
-        raise LiveError(f"--live {path}: no directory {directory}")
+    try:
+        control._prepare_directory(Path(path).parent)      # the same rules as the control socket's
+    except control.ControlError as exc:
+        raise LiveError(f"--live {path}: {exc}") from None
     if os.path.lexists(path):
         if not stat.S_ISSOCK(os.lstat(path).st_mode):
             raise LiveError(f"--live {path}: the path exists and is not a socket")
@@ -252,7 +230,7 @@ def bind_live_socket(path: str) -> socket.socket:
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     try:
         sock.bind(path)
-        os.chmod(path, 0o600)
+        os.chmod(path, SOCKET_MODE)
     except OSError as exc:
         sock.close()
         raise LiveError(f"--live {path}: cannot listen there ({exc.strerror})") from None
@@ -365,7 +343,7 @@ class _Server(http.server.ThreadingHTTPServer):
     hosts: frozenset[str]
     origins: frozenset[str]
     page: bytes
-    control_path: str | None
+    control_path: str
     closing: threading.Event
 
 
@@ -393,7 +371,7 @@ class Monitor:
         server.hosts = frozenset({f"127.0.0.1:{self.port}", f"localhost:{self.port}"})
         server.origins = frozenset(f"http://{h}" for h in server.hosts)
         server.page = resources.files("beamctl.tools").joinpath("monitor_page.html").read_bytes()
-        server.control_path = control_path or default_control_path()
+        server.control_path = str(control_path or control.default_socket_path())
         server.closing = threading.Event()
         self.control_path = server.control_path
         self._server = server

@@ -7,8 +7,8 @@ import argparse
 import sys
 import time
 
-from beamctl.rt.live import default_live_path
 from beamctl.tools.argtypes import number, positive
+from beamctl.tools.live import default_live_path
 from beamctl.tools.monitor import Monitor
 from beamctl.tools.signals import stop_on_signals
 
@@ -31,7 +31,8 @@ def add_parser(sub) -> None:
                    help=f"the UNIX socket to listen at (default {default_live_path()}, where --live sends "
                         "without an address)")
     p.add_argument("--control", metavar="PATH",
-                   help="the service's control socket for the page's buttons (default: beamctl ctl's)")
+                   help="the service's control socket, for the page's buttons (default: where `beamctl "
+                        "ctl` looks)")
     p.add_argument("--window", type=positive, default=20.0, metavar="S",
                    help="seconds of history the page shows (default 20)")
     p.set_defaults(run=run)
@@ -40,7 +41,7 @@ def add_parser(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     with stop_on_signals() as stop, Monitor(args.live, args.port, args.control, args.window) as monitor:
         print(f"beamctl monitor: listening for `--live` at {monitor.live_path}; operator commands go to "
-              f"{monitor.control_path or '(none in this version)'}", file=sys.stderr)
+              f"{monitor.control_path}", file=sys.stderr)
         print(monitor.url, flush=True)
         while not stop.reason:          # the signal handler sets it
             time.sleep(0.2)

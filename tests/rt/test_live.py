@@ -185,7 +185,8 @@ def test_the_writer_feeds_the_view_and_the_file_gets_every_record(tmp_path, rece
     _, rows = read_telemetry(tmp_path / "t.btl")
     np.testing.assert_array_equal(rows[:, 1], np.arange(5000))
     kept = np.concatenate([r for _, r in received])[:, 1]
-    assert np.all(kept % publisher.decimation == publisher.decimation - 1)
+    assert np.all(kept[:-1] % publisher.decimation == publisher.decimation - 1)
+    assert kept[-1] == 4999, "and the run's last row"
     assert np.all(np.diff(kept) > 0), "rows arrive in order"
 
 
@@ -223,3 +224,15 @@ def _datagram(header: bytes, body: bytes) -> bytes:
 def test_a_damaged_datagram_is_refused_saying_why(datagram, why):
     with pytest.raises(LiveError, match=why):
         decode(datagram)
+
+
+def test_the_view_gets_the_run_s_final_row_whether_or_not_decimation_keeps_it(tmp_path, receiver):
+    """The final state (STOPPED after a ramp to bias) is one row: the last drain sends it."""
+    path, sock = receiver
+    for n in (26, 30):          # k = 13: row 25 is kept by decimation, row 29 is not
+        publisher = LivePublisher(path, COLUMNS, RATE_HZ)
+        with TelemetryWriter(tmp_path / f"{n}.btl", COLUMNS, capacity=64, live=publisher) as writer:
+            for i in range(n):
+                writer.push(_rows(i, 1)[0])
+        kept = np.concatenate([rows for _, rows in _drain(sock)])[:, 1]
+        assert kept[-1] == n - 1 and np.all(np.diff(kept) > 0), (n, kept)

@@ -2,6 +2,7 @@
 processes, the page in a real headless Chromium; a viewer that stalls or dies; the experiment's
 runs on the view."""
 
+import contextlib
 import json
 import os
 import select
@@ -49,11 +50,11 @@ def short_dir():
     shutil.rmtree(path, ignore_errors=True)
 
 
-def _service(tmp_path, telemetry, live: str) -> subprocess.Popen:
-    """``beamctl run --live`` until stopped, recording into ``telemetry``."""
+def _service(tmp_path, telemetry, live: str | None, *flags: str) -> subprocess.Popen:
+    """``beamctl run --live [live]`` until stopped, recording into ``telemetry``."""
     path = tmp_path / "service.yaml"
     path.write_text(yaml.safe_dump({**SERVICE, "run": {"telemetry": str(telemetry), "duration_s": 0}}))
-    return beamctl("run", "--config", str(path), "--live", live, cwd=tmp_path)
+    return beamctl("run", "--config", str(path), *flags, "--live", *([live] if live else []), cwd=tmp_path)
 
 
 def _url_of(monitor: subprocess.Popen) -> str:
@@ -100,7 +101,8 @@ PAGE_VALUES = """(() => {
   const text = (id) => document.getElementById(id).textContent;
   return {state: text("value-state"), fault: text("value-fault"), connection: text("connection"),
           time: parseFloat(text("value-time")), load: parseFloat(text("value-load")),
-          cycles: parseInt(text("value-cycles")), points: (buf.time_s || []).length};
+          cycles: parseInt(text("value-cycles")), points: (buf.time_s || []).length,
+          reply: text("value-reply")};
 })()"""
 
 
@@ -115,32 +117,56 @@ def _page_when(browser: HeadlessChromium, condition, what: str) -> dict:
     raise AssertionError(f"the page did not show {what} within {DEADLINE_S} s; it shows {values}")
 
 
-@pytest.mark.skipif(BROWSER is None, reason=NO_BROWSER)
-def test_the_page_in_a_browser_shows_the_running_service_s_values_as_they_change(tmp_path, short_dir):
-    live = os.path.join(short_dir, "live.sock")
-    telemetry = tmp_path / "run.btl"
-    monitor = beamctl("monitor", "--port", "0", "--live", live, cwd=tmp_path)
+@contextlib.contextmanager
+def _page_of_a_service(tmp_path, *service_flags: str):
+    """``beamctl monitor`` and ``beamctl run --live`` with their default sockets (the test's own:
+    tests/conftest.py), the monitor's page open in a headless Chromium: (service, browser). Every
+    process is ended afterwards."""
+    monitor = beamctl("monitor", "--port", "0", cwd=tmp_path)
     service = browser = None
     try:
         url = _url_of(monitor)
-        service = _service(tmp_path, telemetry, live)
+        service = _service(tmp_path, tmp_path / "run.btl", None, *service_flags)
         browser = HeadlessChromium(BROWSER)
         browser.open(url)
+        yield service, browser
+    finally:
+        if browser is not None:
+            browser.close()
+        _stop(service)
+        _stop(monitor)
+
+
+@pytest.mark.skipif(BROWSER is None, reason=NO_BROWSER)
+def test_the_page_in_a_browser_shows_the_running_service_s_values_as_they_change(tmp_path):
+    with _page_of_a_service(tmp_path) as (service, browser):
         first = _page_when(browser, lambda v: v["state"] == "RUNNING" and v["connection"] == "live"
                            and v["load"] == v["load"], "the service RUNNING and live")
         second = _page_when(browser, lambda v: v["time"] >= first["time"] + 2.0,
                             f"a time 2 s past {first['time']} s")
-    finally:
-        if browser is not None:
-            browser.close()
-        out, err = _stop(service)
-        _stop(monitor)
     assert first["fault"].startswith("NONE"), first
     assert second["cycles"] > first["cycles"] and second["points"] > 0, (first, second)
     # shown with 0.1 N and 1 ms: over at least 2 s (20 N) the rate is good to 1 %
     rate = (second["load"] - first["load"]) / (second["time"] - first["time"])
     assert rate == pytest.approx(LOAD_RATE_N_PER_S, rel=0.02), (first, second)
+    out, err = service.communicate()
     assert service.returncode == 0 and b"ended STOPPED" in out, err.decode()
+
+
+@pytest.mark.skipif(BROWSER is None, reason=NO_BROWSER)
+def test_the_page_s_buttons_start_and_stop_the_service(tmp_path):
+    """A service started with --hold waits ARMED; the page's Start runs it, its Stop ends it (the
+    operator's stop: the stacks ramp to bias, the service exits 0), each reply on the page."""
+    with _page_of_a_service(tmp_path, "--hold") as (service, browser):
+        _page_when(browser, lambda v: v["state"] == "ARMED" and v["connection"] == "live", "ARMED (--hold)")
+        browser.evaluate("document.getElementById('button-start').click()")
+        started = _page_when(browser, lambda v: v["state"] == "RUNNING", "RUNNING after Start")
+        browser.evaluate("document.getElementById('button-stop').click()")
+        stopped = _page_when(browser, lambda v: v["state"] == "STOPPED", "STOPPED after Stop")
+        out, err = service.communicate(timeout=DEADLINE_S)
+    assert "start: done" in started["reply"] and "ARMED -> RUNNING" in started["reply"], started
+    assert "stop: done" in stopped["reply"], stopped
+    assert service.returncode == 0 and b"stopped by operator" in out, (out.decode(), err.decode())
 
 
 def test_a_viewer_that_stalls_and_dies_never_holds_up_the_service(tmp_path, short_dir):

@@ -17,11 +17,6 @@ from beamctl.tools.monitor import Monitor
 
 COLUMNS = ["time_s", "sequence", "state", "fault", "flags", "load_N", "not_for_the_page"]
 RATE_HZ = 2500.0
-HAS_CONTROL = True
-try:
-    from beamctl.tools import control  # noqa: F401
-except ImportError:
-    HAS_CONTROL = False
 
 
 @pytest.fixture
@@ -131,17 +126,10 @@ def test_the_page_needs_the_token_and_is_served_whole_with_nothing_from_elsewher
     assert b"://" not in page.replace(b"http://www.w3.org", b""), "the page loads nothing from another host"
 
 
-@pytest.mark.skipif(HAS_CONTROL, reason="this beamctl has operator commands: the end-to-end test covers them")
-def test_without_operator_commands_a_valid_command_is_answered_501(monitor):
-    status, reply = _request(monitor, "POST", "/command", b'{"command": "status"}')
-    assert status == 501 and "beamctl ctl" in json.loads(reply)["message"]
-
-
-@pytest.mark.skipif(not HAS_CONTROL, reason="needs beamctl.tools.control (beamctl ctl)")
 def test_a_command_for_a_service_that_is_not_running_says_so(monitor):
     status, reply = _request(monitor, "POST", "/command", b'{"command": "status"}')
     answer = json.loads(reply)
-    assert status == 503 and answer["ok"] is False and answer["message"], answer
+    assert status == 503 and answer["ok"] is False and "no service at" in answer["message"], answer
 
 
 def test_the_page_gets_the_service_s_rows_and_its_own_columns_only(monitor):
