@@ -35,7 +35,6 @@ import numpy as np
 MAGIC = b"BEAMCTL-LIVE 1\n"
 _LENGTH = struct.Struct("<I")
 DEFAULT_RATE_HZ = 200.0         # rows a second: enough for a page, a fraction of a loop's rate
-PUBLISH_INTERVAL_S = 0.1        # the writer drains at least this often when a viewer may listen
 MAX_DATAGRAM_BYTES = 32768
 MAX_SOCKET_PATH_BYTES = 107     # sun_path holds 108 bytes with the terminating zero
 
@@ -79,7 +78,6 @@ class LivePublisher:
         self.columns = self.record_columns + (list(derived.columns) if derived else [])
         self.sample_rate_hz = float(sample_rate_hz)
         self.decimation = max(1, math.ceil(self.sample_rate_hz / rate_hz))
-        self.interval_s = PUBLISH_INTERVAL_S
         # a drain that brings more (the writer was held up) sends its newest second only
         self.max_rows = max(1, math.ceil(self.sample_rate_hz / self.decimation))
         self._rows_per_datagram = max(1, (MAX_DATAGRAM_BYTES - 8192) // (8 * len(self.columns)))

@@ -6,9 +6,11 @@ made before the loop) or, if the writer has fallen a whole buffer behind, drops 
 and counts it. The writer appends whole rows and flushes at least every ``flush_interval_s``
 (<= 0.5 s), so after a ``kill -9`` the file holds everything up to the last flush.
 
-A live view (rt/live.py) may watch: the writer hands each drain's rows to its publisher,
-in the writer's thread, and then drains at least every ``PUBLISH_INTERVAL_S``; the loop's side
-is the same with or without it. A writer without a file (``path`` None) only feeds the view.
+A live view (rt/live.py) may watch: the writer hands each drain's rows to its publisher, in
+the writer's thread and at the writer's own pace (a drain every ``flush_interval_s``: a view
+does not wake the writer more often, whose work would then compete with the loop's); the
+loop's side is the same with or without it. A writer without a file (``path`` None) only feeds
+the view.
 
 File format (``.btl``): the line ``BEAMCTL-TELEMETRY 1``, an 8-byte little-endian length,
 a JSON header (columns, sample rate, run metadata), then rows of little-endian float64.
@@ -54,7 +56,6 @@ class TelemetryWriter:
         self._thread: threading.Thread | None = None
         self.live = live
         self.live_error = ""    # why the live view was switched off (a viewer's fault never stops the file)
-        self._wait_s = self.flush_interval_s if live is None else min(self.flush_interval_s, live.interval_s)
         self._file = None
         if self.path is not None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -120,7 +121,7 @@ class TelemetryWriter:
             self._drain()
             if self._file is not None:
                 self._file.flush()
-            self._stop.wait(self._wait_s)
+            self._stop.wait(self.flush_interval_s)
 
     def close(self) -> None:
         """Write everything pushed so far and close the file (the live view gets it too)."""
