@@ -41,7 +41,7 @@ def add_live_argument(p: argparse.ArgumentParser) -> None:
     (without ADDRESS: where the monitor listens by default)."""
     p.add_argument("--live", nargs="?", const=default_live_path(), metavar="ADDRESS",
                    help="send live values to `beamctl monitor` listening at ADDRESS (a UNIX socket; "
-                        f"default {default_live_path()}); nobody listening costs the run nothing")
+                        f"default {default_live_path()}); with nobody listening the values are dropped")
 
 
 def deflection_columns(controller: Controller) -> Derived:
