@@ -28,7 +28,6 @@ import json
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -166,12 +165,6 @@ class GainTable:
     @property
     def model_sha256(self) -> str:
         return self.model_parameters.digest()
-
-    @cached_property
-    def sha256(self) -> str:
-        """The SHA-256 of the table's content, as its file carries it (for a table read from a
-        changed file, ``intact`` False, the hash of what was read)."""
-        return content_sha256(self._content())
 
     @property
     def sha256(self) -> str:

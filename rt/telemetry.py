@@ -13,6 +13,12 @@ sample with a trigger flag such as a saturation), the samples from ``pre_trigger
 ``post_trigger_s`` after it (``triggered``). Every row keeps its own time stamp (the record's
 ``time_s``), so a thinned recording's time base stays exact.
 
+A live view (rt/live.py) may watch: the writer hands each drain's rows to its publisher, in
+the writer's thread and at the writer's own pace (a drain every ``flush_interval_s``: a view
+does not wake the writer more often, whose work would then compete with the loop's); the
+loop's side is the same with or without it. The view sees every sample, whatever the
+recording keeps. A writer without a file (``path`` None) only feeds the view.
+
 File format (``.btl``): the line ``BEAMCTL-TELEMETRY 1``, an 8-byte little-endian length,
 a JSON header (columns, and where the writer knows them the sample rate, the units, the labels
 of coded columns and bits, the recording mode, and run metadata), then rows of little-endian
@@ -32,6 +38,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from beamctl.rt.live import LivePublisher
 
 MAGIC = b"BEAMCTL-TELEMETRY 1\n"
 RECORDING_MODES = ("full", "decimated", "triggered")
@@ -171,14 +179,15 @@ class TelemetryWriter:
     rows in the file, ``dropped`` the records the ring had no room for.
     """
 
-    def __init__(self, path: str | Path, columns: list[str], capacity: int,
+    def __init__(self, path: str | Path | None, columns: list[str], capacity: int,
                  flush_interval_s: float = 0.25, meta: dict | None = None, *,
+                 live: LivePublisher | None = None,
                  sample_rate_hz: float | None = None, recording: Recording | None = None,
                  units: Mapping[str, str] | None = None,
                  labels: Mapping[str, Mapping[int, str]] | None = None,
                  bits: Mapping[str, Mapping[int, str]] | None = None,
                  trigger_bits: Mapping[str, int] | None = None) -> None:
-        self.path = Path(path)
+        self.path = None if path is None else Path(path)
         self.columns = list(columns)
         self.capacity = int(capacity)
         self.flush_interval_s = float(flush_interval_s)
@@ -195,6 +204,11 @@ class TelemetryWriter:
         self.written = 0
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self.live = live
+        self.live_error = ""    # why the live view was switched off (a viewer's fault never stops the file)
+        self._file = None
+        if self.path is None:
+            return
         self.path.parent.mkdir(parents=True, exist_ok=True)
         header = {"columns": self.columns,
                   "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
@@ -225,7 +239,8 @@ class TelemetryWriter:
                         _Events([], {index[c]: int(m) for c, m in trigger_bits.items() if c in index}))
 
     @classmethod
-    def for_controller(cls, path: str | Path, controller, meta: dict | None = None) -> TelemetryWriter:
+    def for_controller(cls, path: str | Path | None, controller, meta: dict | None = None,
+                       live: LivePublisher | None = None) -> TelemetryWriter:
         """A writer for a controller's records, sized and set by its ``telemetry`` settings, with
         the record's units, code labels and flag bits, the sample rate and the gain table's
         SHA-256 (``meta["gain_table_sha256"]``) in the header."""
@@ -237,7 +252,8 @@ class TelemetryWriter:
                    meta={"gain_table_sha256": controller.table.sha256, **(meta or {})},
                    sample_rate_hz=controller.sample_rate_hz, recording=settings.recording,
                    units={c: column_unit(c) for c in RECORD_COLUMNS}, labels=code_labels(),
-                   bits=flag_labels(), trigger_bits={column: TRIGGER_FLAGS for column in flag_labels()})
+                   bits=flag_labels(), trigger_bits={column: TRIGGER_FLAGS for column in flag_labels()},
+                   live=live)
 
     def start(self) -> TelemetryWriter:
         self._thread = threading.Thread(target=self._run, name="telemetry-writer", daemon=True)
@@ -253,37 +269,54 @@ class TelemetryWriter:
         np.copyto(self._rows[head % self.capacity], record)
         self._head = head + 1
 
-    def _drain(self) -> None:
+    def _drain(self, final: bool = False) -> None:
         head, tail = self._head, self._tail
         if head == tail:
+            if final and head:          # the view's last word: the run's final row
+                last = (head - 1) % self.capacity
+                self._publish([self._ring[last:last + 1]], head - 1, final)
             return
         start, end = tail % self.capacity, head % self.capacity
         if start < end:
             chunks = [self._ring[start:end]]
         else:
             chunks = [self._ring[start:], self._ring[:end]] if end else [self._ring[start:]]
-        first = tail                    # the sample index of the chunk's first record
-        for chunk in chunks:
-            for rows in ([chunk] if self._select is None else self._select.select(chunk, first)):
-                self._file.write(rows.astype("<f8", copy=False).tobytes())
-                self.written += len(rows)
-            first += len(chunk)
+        if self._file is not None:
+            first = tail                # the sample index of the chunk's first record
+            for chunk in chunks:
+                for rows in ([chunk] if self._select is None else self._select.select(chunk, first)):
+                    self._file.write(rows.astype("<f8", copy=False).tobytes())
+                    self.written += len(rows)
+                first += len(chunk)
+        self._publish(chunks, tail, final)     # before the tail moves on: the loop may then reuse the rows
         self._tail = head
         self.received = head
+
+    def _publish(self, chunks: list[np.ndarray], first_index: int, final: bool) -> None:
+        if self.live is None:
+            return
+        try:
+            self.live.publish(chunks, first_index, final)
+        except Exception as exc:        # a fault of the view must not cost the recording
+            self.live_error = f"{type(exc).__name__}: {exc}"
+            self.live = None
 
     def _run(self) -> None:
         while not self._stop.is_set():
             self._drain()
-            self._file.flush()
+            if self._file is not None:
+                self._file.flush()
             self._stop.wait(self.flush_interval_s)
 
     def close(self) -> None:
-        """Write everything pushed so far (what the recording keeps of it) and close the file."""
+        """Write everything pushed so far (what the recording keeps of it) and close the file
+        (the live view gets it too)."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join()
-        if not self._file.closed:
-            self._drain()
+        if self._file is None or not self._file.closed:
+            self._drain(final=True)
+        if self._file is not None and not self._file.closed:
             self._file.flush()
             self._file.close()
 

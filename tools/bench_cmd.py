@@ -65,14 +65,18 @@ def step_timing(samples: int = 50_000) -> dict:
     return percentiles_us(times)
 
 
-def timer_pacing(cycles: int = 5000) -> dict:
-    """Start-to-start time of the loop's cycles with ``timer`` pacing (absolute deadlines at the
-    table's rate) against the sim backend: median, 99th percentile, overruns."""
+def _timer_run(cycles: int, what: str, telemetry: Path | None = None, live: str | None = None,
+               acquire_rt: bool = False):
+    """The loop with ``timer`` pacing at the default table's rate against the sim backend, for
+    ``cycles`` cycles; with a telemetry file and a live view at the socket ``live`` if given, and
+    the real-time set-up (SCHED_FIFO, affinity, locked memory, where granted) if asked."""
     from beamctl.hal.sim import SimBackend
     from beamctl.models import build_model
     from beamctl.models.plant import Plant, plant_config
     from beamctl.rt.allocation import geometry
     from beamctl.rt.loop import ControlLoop
+    from beamctl.rt.telemetry import TelemetryWriter
+    from beamctl.tools import live as live_view
 
     table = load_table(default_table_path())
     config = controller_config({"pacing": "timer"})
@@ -80,19 +84,106 @@ def timer_pacing(cycles: int = 5000) -> dict:
                   plant_config({"sample_rate_hz": table.design.sample_rate_hz,
                                 "io": table.design.io.to_dict(),
                                 "load": {"start": 2000.0, "end": 2000.0}}))
+    controller = Controller(table, config)
+    publisher = writer = None
+    if live is not None:
+        publisher = live_view.live_publisher(live, controller, f"beamctl bench: {what}")
+    if telemetry is not None:
+        writer = TelemetryWriter.for_controller(telemetry, controller, live=publisher)
     hal = SimBackend(plant, geometry(config.actuators)).open()
     try:
+        if writer is not None:
+            writer.start()
         with stop_on_signals() as stop:
-            loop = ControlLoop(Controller(table, config), hal, max_cycles=cycles, stop=stop)
-            result = loop.run(acquire_rt=False)
+            loop = ControlLoop(controller, hal, telemetry=writer, max_cycles=cycles, stop=stop)
+            if publisher is not None:
+                live_view.watch_loop(publisher, loop, writer)
+            result = loop.run(acquire_rt=acquire_rt)
     finally:
         hal.close()
+        if writer is not None:
+            writer.close()
+        if publisher is not None:
+            publisher.close()
     if result.signal_received:
-        raise Interrupted(result.signal_received, "the timer pacing measurement")
+        raise Interrupted(result.signal_received, what)
+    return result, publisher
+
+
+def timer_pacing(cycles: int = 5000) -> dict:
+    """Start-to-start time of the loop's cycles with ``timer`` pacing (absolute deadlines at the
+    table's rate) against the sim backend: median, 99th percentile, overruns."""
+    table = load_table(default_table_path())
+    result, _ = _timer_run(cycles, "the timer pacing measurement")
     cycle = result.timing["cycle"]
     return {"period_us": 1e6 / table.design.sample_rate_hz, "p50": cycle["p50_us"],
             "p99": cycle["p99_us"], "max": cycle["max_us"], "overruns": result.timing["overruns"],
             "cycles": cycle["count"]}
+
+
+LIVE_CASES = ("without --live", "nobody listening", "viewer attached", "viewer stalled")
+
+
+def live_view_timing(cycles: int = 12_000, rounds: int = 5) -> dict:
+    """The loop's timing (``timer`` pacing, the sim backend, telemetry written, the real-time
+    set-up as ``beamctl run`` takes it) with the live view four ways, in rounds that take each in
+    turn: without ``--live``; ``--live`` with nobody listening; a viewer attached (``beamctl
+    monitor`` in its own process, its page's event stream read by another); a viewer stalled (a
+    socket bound and never read). Per case the medians over the rounds of the cycle's p50 and p99
+    and the step's p50 (us), the datagrams sent and dropped, and the ratios to the case without
+    ``--live``."""
+    import socket
+    import urllib.parse
+
+    runs: dict[str, list[dict]] = {case: [] for case in LIVE_CASES}
+    datagrams = {case: [0, 0] for case in LIVE_CASES}
+    with tempfile.TemporaryDirectory(prefix="bb", dir="/tmp") as tmp:
+        attached, stalled = os.path.join(tmp, "attached.sock"), os.path.join(tmp, "stalled.sock")
+        cli = "import sys; from beamctl.tools.cli import main; sys.exit(main())"
+        monitor = subprocess.Popen([sys.executable, "-c", cli, "monitor", "--port", "0", "--live", attached],
+                                   stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+        page = None
+        never_read = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        try:
+            url = urllib.parse.urlsplit(monitor.stdout.readline().decode().strip())
+            if not url.port:
+                raise RuntimeError("beamctl monitor did not start")
+            events = f"http://127.0.0.1:{url.port}/events?{url.query}"
+            page = subprocess.Popen([sys.executable, "-c", "import sys, urllib.request\n"
+                                     "for line in urllib.request.urlopen(sys.argv[1]): pass", events],
+                                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            never_read.bind(stalled)
+            live = {"without --live": None, "nobody listening": os.path.join(tmp, "nobody.sock"),
+                    "viewer attached": attached, "viewer stalled": stalled}
+            for k in range(rounds):
+                for case in LIVE_CASES:
+                    result, publisher = _timer_run(cycles, f"the live view measurement ({case})",
+                                                   Path(tmp) / f"{k}.btl", live[case], acquire_rt=True)
+                    (Path(tmp) / f"{k}.btl").unlink()
+                    realtime = result.realtime.get("scheduler", "not asked")
+                    t = result.timing
+                    runs[case].append({"cycle_p50": t["cycle"]["p50_us"], "cycle_p99": t["cycle"]["p99_us"],
+                                       "step_p50": t["compute"]["p50_us"], "overruns": t["overruns"]})
+                    if publisher is not None:
+                        datagrams[case][0] += publisher.sent
+                        datagrams[case][1] += publisher.dropped
+        finally:
+            never_read.close()
+            for process in (page, monitor):
+                if process is not None:
+                    process.terminate()
+                    process.wait()
+    out: dict = {"cycles": cycles, "rounds": rounds, "realtime": realtime,
+                 "period_us": 1e6 / load_table(default_table_path()).design.sample_rate_hz}
+    for case in LIVE_CASES:
+        med = {key: float(np.median([r[key] for r in runs[case]])) for key in runs[case][0]}
+        med["sent"], med["dropped"] = datagrams[case]
+        out[case] = med
+    base = out["without --live"]
+    for case in LIVE_CASES[1:]:
+        out[case]["ratio"] = {key: out[case][key] / base[key]
+                              for key in ("cycle_p50", "cycle_p99", "step_p50")}
+    return out
 
 
 def _emulator_priority() -> None:
@@ -290,7 +381,23 @@ def add_parser(sub) -> None:
                         "compiled kernel, per-sample cost and ratio (needs numba)")
     p.add_argument("--repeat", type=number(low=1, integer=True), default=3,
                    help="rounds of --offline (default 3)")
+    p.add_argument("--live", action="store_true",
+                   help="only the loop's timing with and without a live view (beamctl monitor)")
     p.set_defaults(run=run)
+
+
+def print_live_view_timing(lv: dict) -> None:
+    print(f"live view, timer pacing ({lv['period_us']:.0f} us period, {lv['cycles']} cycles, median of "
+          f"{lv['rounds']} rounds), telemetry written, real-time set-up {lv['realtime']}:")
+    for case in LIVE_CASES:
+        r = lv[case]
+        line = (f"  {case:17s} cycle p50 {r['cycle_p50']:.1f} us, p99 {r['cycle_p99']:.1f} us; "
+                f"step p50 {r['step_p50']:.2f} us; {r['overruns']:.0f} overruns")
+        if "ratio" in r:
+            q = r["ratio"]
+            line += (f"; / without: {q['cycle_p50']:.3f}, {q['cycle_p99']:.3f}, {q['step_p50']:.3f}; "
+                     f"datagrams {r['sent']} sent, {r['dropped']} dropped")
+        print(line)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -306,6 +413,13 @@ def run(args: argparse.Namespace) -> int:
         else:
             print_offline(result)
         return 0
+    if args.live:
+        lv = live_view_timing()
+        if args.json:
+            print(json.dumps({"live_view": lv}, indent=1))
+        else:
+            print_live_view_timing(lv)
+        return 0
     result = {"step_us": step_timing(args.steps)}
     lat = can_latency()
     result["can_latency_us"] = {k: lat[k] for k in ("p50", "p99", "p99.9", "max")}
@@ -313,6 +427,7 @@ def run(args: argparse.Namespace) -> int:
     result["sim_realtime_factor"] = sim["factor"]
     result["gains_build_s"] = gains_build_time()
     result["timer_cycle_us"] = timer_pacing()
+    result["live_view"] = live_view_timing()
     result["can"] = lat
     result["sim"] = sim
     if args.json:
@@ -334,5 +449,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"timer pacing, start to start ({tc['period_us']:.0f} us period, {tc['cycles']} cycles): "
               f"p50 {tc['p50']:.1f} us, p99 {tc['p99']:.1f} us, max {tc['max']:.1f} us, "
               f"{tc['overruns']} overruns")
+        print_live_view_timing(result["live_view"])
     finite = [*result["step_us"].values(), *result["can_latency_us"].values()]
     return 0 if all(math.isfinite(v) for v in finite) else 1

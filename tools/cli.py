@@ -62,6 +62,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         identify_cmd,
         log_cmd,
         model_cmd,
+        monitor_cmd,
         plant_cmd,
         run_cmd,
         study_cmd,
@@ -80,6 +81,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     plant_cmd.add_parser(sub)
     run_cmd.add_parser(sub)
     ctl_cmd.add_parser(sub)
+    monitor_cmd.add_parser(sub)
     bench_cmd.add_parser(sub)
     study_cmd.add_parser(sub)
     return parser
@@ -106,6 +108,7 @@ def _discard_stdout() -> None:
 def _run(argv: list[str] | None) -> int:
     """Parse ``argv`` and run the command; every refusal and interruption in one line."""
     from beamctl.config.schema import ConfigError
+    from beamctl.rt.live import LiveError
     from beamctl.rt.telemetry import TelemetryError
     from beamctl.tools.extras import MissingExtraError
 
@@ -120,7 +123,7 @@ def _run(argv: list[str] | None) -> int:
         status = int(args.run(args) or 0)
         sys.stdout.flush()
         return status
-    except (ConfigError, OutputPathError, TelemetryError, MissingExtraError) as exc:
+    except (ConfigError, OutputPathError, TelemetryError, MissingExtraError, LiveError) as exc:
         print(f"{name}: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except Interrupted as exc:

@@ -42,6 +42,7 @@ from beamctl.models.plant import plant_config
 from beamctl.rt.controller import Controller
 from beamctl.rt.loop import ControlLoop, StopRequest
 from beamctl.rt.telemetry import TelemetryWriter
+from beamctl.tools import live as live_view
 from beamctl.tools.service import (
     ServiceConfig,
     build_plant,
@@ -126,15 +127,18 @@ class Deflection:
         phi = reduce(model).phi
         lat = np.stack([lateral_displacements(model, phi[:, j]) for j in range(4)], axis=-1)
         self._vy, self._vz = lat[:, 0, :], lat[:, 1, :]       # [n_beam x 4]
-        self._y = np.zeros(len(self._vy))
-        self._z = np.zeros(len(self._vz))
 
     def __call__(self, q: np.ndarray) -> tuple[float, float, float]:
-        np.dot(self._vy, q, out=self._y)
-        np.dot(self._vz, q, out=self._z)
-        mag = np.hypot(self._y, self._z)
-        k = int(np.argmax(mag))
-        return float(mag[k]), float(self._y[k]), float(self._z[k])
+        d, dy, dz = self.many(q[np.newaxis, :])[0]
+        return float(d), float(dy), float(dz)
+
+    def many(self, q: np.ndarray) -> np.ndarray:
+        """[m x 3] for q [m x 4]: the largest magnitude (m) and its y and z components."""
+        y, z = q @ self._vy.T, q @ self._vz.T                 # [m x n_beam]
+        mag = np.hypot(y, z)
+        k = np.argmax(mag, axis=1)
+        rows = np.arange(len(q))
+        return np.column_stack([mag[rows, k], y[rows, k], z[rows, k]])
 
 
 def paper_table(cfg: ServiceConfig) -> GainTable:
@@ -193,12 +197,14 @@ def check_engine(engine: str, telemetry: bool = False) -> str:
 
 def run_mode(mode: str, cfg: ServiceConfig, settings: dict, table: GainTable,
              telemetry_dir: Path | None = None, progress=None, stop: StopRequest | None = None,
-             engine: str = "auto") -> RunTrace:
+             engine: str = "auto", live: str | None = None) -> RunTrace:
     """One load ramp with ``table``; full-rate telemetry into ``telemetry_dir/telemetry_<mode>.btl``
-    if given. ``engine``: see ``check_engine``; both give the same run."""
+    if given, live values to ``beamctl monitor`` at the socket ``live`` if given. ``engine``:
+    see ``check_engine`` (a run with telemetry or a live view runs in the loop); both give the
+    same run."""
     from beamctl.tools.simkernel import Accelerator, RunMonitor
 
-    engine = check_engine(engine, telemetry_dir is not None)
+    engine = check_engine(engine, telemetry_dir is not None or live is not None)
     controller_cfg = replace(cfg.controller, pacing="sample",
                              anti_windup=cfg.controller.anti_windup if mode == "interpolate" else False)
     plant = build_plant(cfg, table)
@@ -210,20 +216,28 @@ def run_mode(mode: str, cfg: ServiceConfig, settings: dict, table: GainTable,
     accelerator = Accelerator(controller, hal, monitor) if engine == "kernel" else None
 
     hal.open()
-    telemetry = None
+    telemetry = publisher = None
     start = time.perf_counter()
     try:
-        if telemetry_dir is not None:
-            telemetry = TelemetryWriter.for_controller(telemetry_dir / f"telemetry_{mode}.btl", controller,
-                                                       meta={"mode": mode, "scenario": cfg.source}).start()
-            trace.telemetry = str(telemetry.path)
+        if live is not None:
+            source = f" ({cfg.source})" if cfg.source else ""
+            publisher = live_view.live_publisher(live, controller, f"beamctl experiment, {mode} run{source}")
+        if telemetry_dir is not None or publisher is not None:
+            path = None if telemetry_dir is None else telemetry_dir / f"telemetry_{mode}.btl"
+            telemetry = TelemetryWriter.for_controller(
+                path, controller, meta={"mode": mode, "scenario": cfg.source}, live=publisher).start()
+            trace.telemetry = "" if path is None else str(path)
         loop = ControlLoop(controller, hal, telemetry=telemetry, stop_on_fault=False, stop=stop,
                            start=(mode != "uncontrolled"), on_cycle=monitor, accelerator=accelerator)
+        if publisher is not None:
+            live_view.watch_loop(publisher, loop, telemetry)
         result = loop.run(acquire_rt=False)
     finally:
         hal.close()
         if telemetry is not None:
             telemetry.close()
+        if publisher is not None:
+            publisher.close()
     if result.signal_received:
         raise Interrupted(result.signal_received, f"the {mode} run")
     trace.wall_s = time.perf_counter() - start
@@ -285,16 +299,18 @@ def summarise(trace: RunTrace, design: str) -> dict:
 
 def run_experiment(cfg: ServiceConfig, settings: dict, tables: dict[str, GainTable],
                    telemetry_dir: Path | None = None, progress=None,
-                   stop: StopRequest | None = None, engine: str = "auto") -> tuple[dict, dict[str, RunTrace]]:
+                   stop: StopRequest | None = None, engine: str = "auto",
+                   live: str | None = None) -> tuple[dict, dict[str, RunTrace]]:
     """Run every mode of ``tables`` (``experiment_tables``) in turn; return the summary and the
-    runs' traces. Full-rate telemetry of each run goes into ``telemetry_dir`` if given."""
+    runs' traces. Full-rate telemetry of each run goes into ``telemetry_dir`` if given, live
+    values to ``beamctl monitor`` at the socket ``live`` if given."""
     modes = tuple(tables)
     traces = {}
     for k, mode in enumerate(modes):
         def step(fraction: float, label: str, k=k) -> None:
             if progress:
                 progress(round(1000 * (k + fraction) / len(modes)), 1000, f"run {k + 1}/{len(modes)} {label}")
-        traces[mode] = run_mode(mode, cfg, settings, tables[mode], telemetry_dir, step, stop, engine)
+        traces[mode] = run_mode(mode, cfg, settings, tables[mode], telemetry_dir, step, stop, engine, live)
     if progress:
         progress(1000, 1000, "done")
     io = plant_settings(cfg, tables[modes[0]]).io

@@ -7,8 +7,10 @@ import json
 import time
 from pathlib import Path
 
+from beamctl.rt.live import check_socket_path
 from beamctl.tools import plots
 from beamctl.tools.experiment import check_engine, experiment_tables, load_experiment_config, run_experiment
+from beamctl.tools.live import add_live_argument
 from beamctl.tools.outputs import check_dir, write_text
 from beamctl.tools.progress import ProgressBar
 from beamctl.tools.signals import stop_on_signals
@@ -36,6 +38,7 @@ def add_parser(sub) -> None:
                         "(needs numba, no --telemetry), every cycle through the control loop, or auto "
                         "(the kernel where it can run; default); the results are the same")
     p.add_argument("--no-paper", action="store_true", help="skip the run with the paper's 500 N switching")
+    add_live_argument(p)
     p.set_defaults(run=run)
 
 
@@ -79,8 +82,10 @@ def run(args: argparse.Namespace) -> int:
     cfg, settings = load_experiment_config(args.config)
     if args.no_paper:
         settings = {**settings, "paper_mode": False}
+    if args.live is not None:
+        check_socket_path(args.live, "--live")
     out = check_dir(args.out, "--out")
-    check_engine(args.engine, args.telemetry)
+    check_engine(args.engine, args.telemetry or args.live is not None)
     tables = experiment_tables(cfg, settings)
     # The folder holds one experiment's report: a previous one's figures and summaries go
     # now, so that a run cut short leaves nothing that could be taken for its result.
@@ -88,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
     start = time.monotonic()
     with ProgressBar("experiment") as bar, stop_on_signals() as stop:
         summary, traces = run_experiment(cfg, settings, tables, out if args.telemetry else None,
-                                         progress=bar, stop=stop, engine=args.engine)
+                                         progress=bar, stop=stop, engine=args.engine, live=args.live)
         bar.close()
     summary["wall_time_s"] = time.monotonic() - start
     table = summary_table(summary)

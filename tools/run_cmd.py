@@ -6,7 +6,8 @@ have passed), checks the bus budget (CAN), starts telemetry, takes the real-time
 the HAL, discards what queued before it was ready, arms, runs until SIGINT/SIGTERM. A fault
 ramps the stacks to bias and holds them there, latched, until the operator
 re-arms with SIGUSR1 (``systemctl kill -s USR1 beamctl``) or stops the service. Under systemd
-it reports readiness and feeds the watchdog from the control loop.
+it reports readiness and feeds the watchdog from the control loop. With ``--live`` the telemetry
+writer also sends decimated records to ``beamctl monitor`` (rt/live.py), never waiting for it.
 
 The operator commands the running service over its control socket (tools/control.py, ``beamctl
 ctl``): start (after ``--hold``, which arms and waits at bias), stop, rearm, gains TABLE, status.
@@ -27,8 +28,10 @@ from beamctl.gains.table import GainTable
 from beamctl.hal.base import HalBase, HalError
 from beamctl.rt import realtime
 from beamctl.rt.controller import Controller
+from beamctl.rt.live import check_socket_path
 from beamctl.rt.loop import ControlLoop
 from beamctl.rt.telemetry import TelemetryWriter
+from beamctl.tools import live as live_view
 from beamctl.tools.argtypes import seconds
 from beamctl.tools.control import ControlError, ControlServer, default_socket_path
 from beamctl.tools.outputs import check_file, check_new_file
@@ -60,6 +63,7 @@ def add_parser(sub) -> None:
                         "$BEAMCTL_CONTROL_SOCKET, /run/beamctl/control.sock, $XDG_RUNTIME_DIR/beamctl/"
                         "control.sock or /tmp/beamctl-UID/control.sock)")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
+    live_view.add_live_argument(p)
     p.set_defaults(run=run)
 
 
@@ -77,6 +81,8 @@ def _output_paths(args: argparse.Namespace, cfg) -> Path:
 
 def run(args: argparse.Namespace) -> int:
     cfg = load_service_config(args.config)
+    if args.live is not None:
+        check_socket_path(args.live, "--live")
     path = _output_paths(args, cfg)
     table = load_gain_table(cfg)
     notifier = Notifier()
@@ -106,19 +112,24 @@ def _log(line: str) -> None:
 def _serve(args: argparse.Namespace, cfg: ServiceConfig, path: Path, table: GainTable, hal: HalBase,
            controller: Controller, notifier: Notifier, server: ControlServer) -> int:
     """The service with its control socket bound: telemetry, the loop, the summary."""
+    live = None
+    if args.live is not None:
+        live = live_view.live_publisher(
+            args.live, controller, f"beamctl run, {cfg.hal.backend} backend, gain table {cfg.table_path}")
     duration_s = cfg.duration_s if args.duration is None else args.duration
     max_cycles = int(duration_s * table.design.sample_rate_hz) if duration_s else None
     # the banner goes to stderr with the other messages: stdout carries the summary alone
     print(f"beamctl run: {cfg.hal.backend} backend, {table.design.sample_rate_hz:g} Hz, "
-          f"{cfg.controller.pacing} pacing, gain table {cfg.table_path}, telemetry {path}", file=sys.stderr)
+          f"{cfg.controller.pacing} pacing, gain table {cfg.table_path}, telemetry {path}"
+          + (f", live view {live.path}" if live else ""), file=sys.stderr)
     _log(f"control socket {server.path} (mode 0660: user and group {server.group} may command)")
     # Telemetry starts before the loop asks for SCHED_FIFO (the writer thread must not inherit
     # it); the loop then takes its real-time set-up and only after it opens the HAL, so that no
     # sample queues up while memory is locked and the collector runs.
     created = [d for d in (path.parent, *path.parent.parents) if not d.exists()]   # deepest first
-    telemetry = TelemetryWriter.for_controller(
-        path, controller, meta={"config": cfg.source, "gain_table": str(cfg.table_path),
-                                "model_sha256": table.model_sha256, "backend": cfg.hal.backend}).start()
+    meta = {"config": cfg.source, "gain_table": str(cfg.table_path), "model_sha256": table.model_sha256,
+            "backend": cfg.hal.backend}
+    telemetry = TelemetryWriter.for_controller(path, controller, meta=meta, live=live).start()
 
     def on_cycle(loop: ControlLoop) -> None:
         notifier.feed()
@@ -130,6 +141,8 @@ def _serve(args: argparse.Namespace, cfg: ServiceConfig, path: Path, table: Gain
         server.serve(loop, table=str(Path(cfg.table_path).absolute()), table_sha256=table.sha256,
                      prepare_table=lambda table_path: table_for_swap(cfg, hal, controller, table_path),
                      log=_log)
+        if live is not None:
+            live_view.watch_loop(live, loop, telemetry)
         rearm = None
         if threading.current_thread() is threading.main_thread():
             rearm = signal.signal(signal.SIGUSR1, lambda *_: loop.request_rearm())
@@ -151,10 +164,15 @@ def _serve(args: argparse.Namespace, cfg: ServiceConfig, path: Path, table: Gain
                 signal.signal(signal.SIGUSR1, rearm)
             notifier.stopping()
             hal.close()
+            if live is not None:
+                live.close()
     summary = {"state": result.state, "fault": result.fault, "reason": result.reason, "cycles": result.cycles,
                "late_answers": controller.safety.late_answers, "backlog_discarded": result.backlog_discarded,
                "stopped_by": result.stop_requested_by, "realtime": result.realtime,
                "timing": result.timing, "telemetry": result.telemetry, "hal": result.hal}
+    if live is not None:
+        summary["live"] = {"path": live.path, "sent": live.sent, "dropped": live.dropped,
+                           "error": telemetry.live_error}
     if args.json:
         print(json.dumps(summary, indent=1))
     else:
@@ -176,6 +194,8 @@ def _serve(args: argparse.Namespace, cfg: ServiceConfig, path: Path, table: Gain
         kept = "" if tel.get("mode", "full") == "full" else f" ({tel['mode']}: of {tel['received']} samples)"
         print(f"  telemetry: {tel.get('written', 0)} records{kept}, {tel.get('dropped', 0)} dropped, "
               f"{tel.get('path', '')}")
+        if live is not None:
+            print(f"  {live_view.summary(live, telemetry)}")
         print(f"  ended {result.state}: {result.reason} (stopped by {result.stop_requested_by or '-'})")
     dropped = result.telemetry.get("dropped", 0)
     if dropped:
