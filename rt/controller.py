@@ -93,7 +93,7 @@ class Controller:
         self.sample_rate_hz = table.design.sample_rate_hz
         self.period = 1.0 / self.sample_rate_hz
         self.schedule = GainSchedule.from_table(table)
-        self.allocator = Allocator(config.actuators)
+        self.allocator = Allocator(config.actuators, config.allocation)
         comp = table.compensator
         n = comp.n_states
 
