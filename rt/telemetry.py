@@ -53,12 +53,15 @@ class TelemetryWriter:
 
     @classmethod
     def for_controller(cls, path: str | Path, controller, meta: dict | None = None) -> TelemetryWriter:
-        """A writer for a controller's records, sized by its ``telemetry`` settings."""
+        """A writer for a controller's records, sized by its ``telemetry`` settings. The header's
+        meta holds what a reader needs to interpret the run (``controller_meta``) under the
+        caller's ``meta``."""
         from beamctl.rt.controller import RECORD_COLUMNS
 
         settings = controller.config.telemetry
         return cls(path, RECORD_COLUMNS, capacity=int(settings.buffer_time_s * controller.sample_rate_hz),
-                   flush_interval_s=settings.flush_interval_s, meta=meta)
+                   flush_interval_s=settings.flush_interval_s,
+                   meta={**controller_meta(controller), **(meta or {})})
 
     def start(self) -> TelemetryWriter:
         self._thread = threading.Thread(target=self._run, name="telemetry-writer", daemon=True)
@@ -109,6 +112,22 @@ class TelemetryWriter:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def controller_meta(controller) -> dict:
+    """The settings a recording is read with: the sample rate, the controller's settings
+    (allocation, actuators, safety limits), the gain table's design and its model's parameters
+    (a reader turns modal displacements into millimetres with them)."""
+    from beamctl.rt.config import settings_by_key
+
+    table = controller.table
+    design = table.design
+    return {"sample_rate_hz": controller.sample_rate_hz,
+            "controller": settings_by_key(controller.config),
+            "design": {"kind": design.kind, "sample_rate_hz": design.sample_rate_hz,
+                       "schedule": table.schedule.mode, "loads_n": [float(table.loads_n[0]),
+                                                                     float(table.loads_n[-1])]},
+            "model": table.model_parameters.to_dict()}
 
 
 def read_telemetry(path: str | Path) -> tuple[dict, np.ndarray]:
