@@ -54,6 +54,7 @@ def build_parser() -> argparse.ArgumentParser:
         log_cmd,
         model_cmd,
         plant_cmd,
+        report_cmd,
         run_cmd,
         study_cmd,
     )
@@ -68,6 +69,7 @@ def build_parser() -> argparse.ArgumentParser:
     identify_cmd.add_parser(sub)
     gains_cmd.add_parser(sub)
     log_cmd.add_parser(sub)
+    report_cmd.add_parser(sub)
     plant_cmd.add_parser(sub)
     run_cmd.add_parser(sub)
     bench_cmd.add_parser(sub)
