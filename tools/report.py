@@ -17,7 +17,7 @@ import html
 import json
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +32,15 @@ FIGURE_POINTS = 20_000                # at most this many points a curve in a fi
 LOAD_VARIES_N = 100.0                 # a run whose load moved less has no deflection-versus-load figure
 DEFAULT_VOLTAGE_LIMITS_V = (0.0, 150.0)
 REPORT_DPI = 100
+# a run this long whose stacks saturated or that faulted gets a second figure over time: the
+# last moments, from EVENT_LEAD_S before the first saturation or fault to the end
+LONG_RUN_S = 10.0
+EVENT_LEAD_S = 2.0
+
+
+# the per-sample series of a record (what ``RunRecord.window`` slices)
+_SERIES = ("time_s", "load_n", "load_filtered_n", "deflection_m", "deflection_y_m", "deflection_z_m",
+           "voltages_v", "state", "fault", "flags", "step_us", "answer_age_us", "late_answers")
 
 
 @dataclass(frozen=True)
@@ -75,6 +84,12 @@ class RunRecord:
         """Samples whose allocation could not give support ``A``'s or ``B``'s force."""
         bit = FLAG_SATURATED_A if support == "A" else FLAG_SATURATED_B
         return (self.flags & bit) != 0
+
+    def window(self, start_s: float, end_s: float) -> RunRecord:
+        """The samples from ``start_s`` to ``end_s`` (times from the first sample, kept)."""
+        part = (self.time_s >= start_s) & (self.time_s <= end_s)
+        series = {name: getattr(self, name)[part] for name in _SERIES}
+        return replace(self, **series)
 
     def stride(self) -> int:
         """Every how many samples a figure draws a point."""
@@ -273,11 +288,24 @@ def run_curves(run: RunRecord, color: str = "tab:blue"):
                      held_samples=int(held[0]) if held.size else None)
 
 
+def first_event_s(run: RunRecord) -> float | None:
+    """The time of the run's first saturation or fault (None: neither happened)."""
+    events = (run.fault != Fault.NONE) | run.saturated("A") | run.saturated("B")
+    hits = np.flatnonzero(events)
+    return float(run.time_s[hits[0]]) if hits.size else None
+
+
 def run_figures(run: RunRecord) -> dict[str, Any]:
-    """The run's figures by file name: over time, and (where the load moved) figure 7a, and 7b."""
+    """The run's figures by file name: over time (and, for a long run, its last moments from
+    just before its first saturation or fault), figure 7a where the load moved, and 7b."""
     from beamctl.tools import plots
 
     figures = {"run_over_time.png": plots.run_over_time(run)}
+    event = first_event_s(run)
+    if event is not None and run.time_s[-1] > LONG_RUN_S:
+        start = max(0.0, event - EVENT_LEAD_S)
+        part = f"from {start:.1f} s ({event - start:g} s before its first saturation or fault)"
+        figures["run_end.png"] = plots.run_over_time(run.window(start, float(run.time_s[-1])), part)
     curves = [run_curves(run)]
     if np.nanmax(run.load_n) - np.nanmin(run.load_n) > LOAD_VARIES_N:
         figures["fig7a_run.png"] = plots.figure_7a(curves, run.critical_load_n, paper=False)

@@ -161,7 +161,7 @@ def test_the_experiment_figures_are_written(experiment, tmp_path):
     paths = plots.experiment_figures(summary, traces, tmp_path)
     assert [p.name for p in paths] == list(plots.EXPERIMENT_FIGURES)
     for p in paths:
-        assert p.read_bytes().startswith(b"\x89PNG") and p.stat().st_size > 20_000, p
+        assert p.read_bytes().startswith(b"\x89PNG") and p.stat().st_size > 10_000, p
 
 
 def test_a_constant_integral_gain_is_drawn_as_its_value_on_a_linear_axis(close):
