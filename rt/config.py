@@ -4,7 +4,7 @@ expected."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import Any
 
 from beamctl.config.schema import (
@@ -23,10 +23,15 @@ from beamctl.config.schema import (
 from beamctl.rt.telemetry import MAX_PRE_TRIGGER_S, RECORDING_MODES, Recording
 
 MAX_AMPLIFIER_VOLTAGE_V = 150.0
+# the allocation's modes (rt/allocation.py, which imports this module: the names live here)
+ALLOCATION_MODES = ("scale", "clip")
 
 CONTROLLER_DEFAULTS: dict[str, Any] = {
     "pacing": "sample",
     "anti_windup": True,
+    # how a force the stacks cannot give is handled (rt/allocation.py): "scale" scales it down
+    # as a whole (its direction kept), "clip" clips each stack at its own limit (the paper's)
+    "allocation": "scale",
     "start_ramp_time_s": 0.2,
     "actuators": {
         # Stack force per volt, a rig parameter the paper does not give. 3.0 N/V is chosen so
@@ -80,6 +85,7 @@ RENAMED_KEYS = {
 _SCHEMA = {
     "pacing": choice("timer", "sample"),
     "anti_windup": boolean(),
+    "allocation": choice(*ALLOCATION_MODES),
     "start_ramp_time_s": nonnegative("s"),
     "actuators": {
         "force_constant_n_per_v": positive("N/V"),
@@ -150,6 +156,7 @@ class ControllerConfig:
     safety: Safety
     telemetry: Telemetry
     realtime: Realtime
+    allocation: str = "scale"           # rt/allocation.py: "scale" or "clip"
 
 
 def controller_config(overrides: dict[str, Any] | None = None, source: str = "",
@@ -173,7 +180,8 @@ def controller_config(overrides: dict[str, Any] | None = None, source: str = "",
     if not s["load_range_n"][0] < s["load_range_n"][1]:
         raise ConfigError(f"{prefix}safety.load_range_n", list(s["load_range_n"]), "low < high", source)
     return ControllerConfig(
-        pacing=v["pacing"], anti_windup=v["anti_windup"], start_ramp_time=v["start_ramp_time_s"],
+        pacing=v["pacing"], anti_windup=v["anti_windup"], allocation=v["allocation"],
+        start_ramp_time=v["start_ramp_time_s"],
         actuators=Actuators(force_constant=a["force_constant_n_per_v"], bias_voltage=a["bias_voltage_v"],
                             min_voltage_v=a["min_voltage_v"], max_voltage_v=a["max_voltage_v"],
                             orientation_deg=a["orientation_deg"]),
@@ -187,3 +195,19 @@ def controller_config(overrides: dict[str, Any] | None = None, source: str = "",
                                                 pre_trigger_s=t["pre_trigger_s"],
                                                 post_trigger_s=t["post_trigger_s"])),
         realtime=Realtime(**v["realtime"]))
+
+
+def settings_by_key(config: ControllerConfig) -> dict[str, Any]:
+    """The settings under their configuration keys, flat (``actuators.force_constant_n_per_v``:
+    3.0), as a record's header and a report state them."""
+    flat: dict[str, Any] = {}
+
+    def walk(value: Any, key: str) -> None:
+        if isinstance(value, dict):
+            for k, v in value.items():
+                walk(v, f"{key}.{k}" if key else k)
+        else:
+            flat[RENAMED_KEYS.get(key, key)] = list(value) if isinstance(value, tuple) else value
+
+    walk(asdict(config), "")
+    return flat

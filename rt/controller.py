@@ -146,7 +146,7 @@ class Controller:
         self.sample_rate_hz = table.design.sample_rate_hz
         self.period = 1.0 / self.sample_rate_hz
         self.model_sha256 = table.model_sha256
-        self.allocator = Allocator(config.actuators)
+        self.allocator = Allocator(config.actuators, config.allocation)
         self._bind(self.prepare_table(table))
         self._force_matrix = np.ascontiguousarray(self.allocator.geometry.force_matrix())
         self._dxi = np.zeros(4)

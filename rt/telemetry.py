@@ -243,13 +243,15 @@ class TelemetryWriter:
                        live: LivePublisher | None = None) -> TelemetryWriter:
         """A writer for a controller's records, sized and set by its ``telemetry`` settings, with
         the record's units, code labels and flag bits, the sample rate and the gain table's
-        SHA-256 (``meta["gain_table_sha256"]``) in the header."""
+        SHA-256 (``meta["gain_table_sha256"]``) in the header; the header's meta holds what a
+        reader needs to interpret the run (``controller_meta``) under the caller's ``meta``."""
         from beamctl.rt.controller import RECORD_COLUMNS, TRIGGER_FLAGS, code_labels, column_unit, flag_labels
 
         settings = controller.config.telemetry
         return cls(path, RECORD_COLUMNS, capacity=int(settings.buffer_time_s * controller.sample_rate_hz),
                    flush_interval_s=settings.flush_interval_s,
-                   meta={"gain_table_sha256": controller.table.sha256, **(meta or {})},
+                   meta={"gain_table_sha256": controller.table.sha256, **controller_meta(controller),
+                         **(meta or {})},
                    sample_rate_hz=controller.sample_rate_hz, recording=settings.recording,
                    units={c: column_unit(c) for c in RECORD_COLUMNS}, labels=code_labels(),
                    bits=flag_labels(), trigger_bits={column: TRIGGER_FLAGS for column in flag_labels()},
@@ -412,6 +414,22 @@ class TelemetryReader:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def controller_meta(controller) -> dict:
+    """The settings a recording is read with: the sample rate, the controller's settings
+    (allocation, actuators, safety limits), the gain table's design and its model's parameters
+    (a reader turns modal displacements into millimetres with them)."""
+    from beamctl.rt.config import settings_by_key
+
+    table = controller.table
+    design = table.design
+    return {"sample_rate_hz": controller.sample_rate_hz,
+            "controller": settings_by_key(controller.config),
+            "design": {"kind": design.kind, "sample_rate_hz": design.sample_rate_hz,
+                       "schedule": table.schedule.mode, "loads_n": [float(table.loads_n[0]),
+                                                                     float(table.loads_n[-1])]},
+            "model": table.model_parameters.to_dict()}
 
 
 def read_telemetry(path: str | Path) -> tuple[dict, np.ndarray]:

@@ -336,8 +336,8 @@ def offline_timing(repeats: int = 3) -> dict:
             "same_samples": bool(same),
             "max_deflection_difference_m": float(np.max(np.abs(a["deflection_m"] - b["deflection_m"])))
             if same else math.inf,
-            "held_load_n": (summarise(loop_trace, "")["load_at_1.0mm_N"],
-                            summarise(kernel_trace, "")["load_at_1.0mm_N"]),
+            "held_load_n": (summarise(loop_trace, "", "scale")["load_at_1.0mm_N"],
+                            summarise(kernel_trace, "", "scale")["load_at_1.0mm_N"]),
             "cycles": kernel_trace.cycles})
     med = {key: float(np.median([r[key] for r in rounds]))
            for key in ("loop_us", "kernel_cold_us", "kernel_warm_us", "ratio_cold", "ratio_warm")}

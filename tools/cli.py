@@ -64,6 +64,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         model_cmd,
         monitor_cmd,
         plant_cmd,
+        report_cmd,
         run_cmd,
         study_cmd,
     )
@@ -78,6 +79,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     identify_cmd.add_parser(sub)
     gains_cmd.add_parser(sub)
     log_cmd.add_parser(sub)
+    report_cmd.add_parser(sub)
     plant_cmd.add_parser(sub)
     run_cmd.add_parser(sub)
     ctl_cmd.add_parser(sub)

@@ -6,7 +6,9 @@ Each mode runs the load ramp on a fresh plant with the same scenario and the sam
   estimates q from the strains, which is what the deflection is measured with;
 - ``interpolate``: the shipped gain table, linear interpolation, anti-windup on;
 - ``paper``: the experiment's setup, gains for 0..3500 N every 500 N switched stepwise and
-  an integrator without anti-windup.
+  an integrator without anti-windup; its allocation is ``experiment.paper_allocation``:
+  ``scale`` (the default, as the other runs: a force the stacks cannot give is scaled down,
+  its direction kept) or ``clip`` (the paper's: each stack clipped at its own limit).
 The rig may differ from the controller's belief: the plant's own beam (``plant.model``), its
 own stacks (``hal.sim.own_actuators``) and its I/O chain (``plant.io``: transport delay,
 anti-aliasing and reconstruction filters, models/iochain.py); the report states the chain and
@@ -32,13 +34,14 @@ from pathlib import Path
 
 import numpy as np
 
-from beamctl.config.schema import ConfigError, boolean, merge, positive, read_yaml, validate
+from beamctl.config.schema import ConfigError, boolean, choice, merge, positive, read_yaml, validate
 from beamctl.gains.build import build_table
 from beamctl.gains.table import GainTable, require_checked
 from beamctl.hal.sim import SimBackend
 from beamctl.models import build_model, critical_load, reduce
 from beamctl.models.analysis import lateral_displacements
 from beamctl.models.plant import plant_config
+from beamctl.rt.config import ALLOCATION_MODES
 from beamctl.rt.controller import Controller
 from beamctl.rt.loop import ControlLoop, StopRequest
 from beamctl.rt.telemetry import TelemetryWriter
@@ -67,9 +70,10 @@ SCENARIO: dict = {
     "plant": {"bow": {"amplitude": BOW_AMPLITUDE_M, "angle_deg": 234.0},
               "load": {"start": 260.0, "end": 4000.0, "rate": 50.0, "hold": 0.5},
               "noise": {"strain": 2e-7, "load": 2.0, "seed": 1}},
-    "experiment": {"deflection_limit": 1.5e-3, "paper_mode": True},
+    "experiment": {"deflection_limit": 1.5e-3, "paper_mode": True, "paper_allocation": "scale"},
 }
-_EXPERIMENT_SCHEMA = {"deflection_limit": positive("m"), "paper_mode": boolean()}
+_EXPERIMENT_SCHEMA = {"deflection_limit": positive("m"), "paper_mode": boolean(),
+                      "paper_allocation": choice(*ALLOCATION_MODES)}
 
 
 @dataclass
@@ -84,6 +88,7 @@ class RunTrace:
     true_deflection_m: list = field(default_factory=list)  # the plant's elastic deflection
     v_min: list = field(default_factory=list)
     v_max: list = field(default_factory=list)
+    saturated: list = field(default_factory=list)          # the allocation could not give the force
     voltages: list = field(default_factory=list)
     state: list = field(default_factory=list)
     wall_s: float = 0.0
@@ -127,18 +132,34 @@ class Deflection:
         phi = reduce(model).phi
         lat = np.stack([lateral_displacements(model, phi[:, j]) for j in range(4)], axis=-1)
         self._vy, self._vz = lat[:, 0, :], lat[:, 1, :]       # [n_beam x 4]
+        self._y = np.zeros(len(self._vy))
+        self._z = np.zeros(len(self._vz))
 
     def __call__(self, q: np.ndarray) -> tuple[float, float, float]:
-        d, dy, dz = self.many(q[np.newaxis, :])[0]
-        return float(d), float(dy), float(dz)
+        """(|w|, w_y, w_z) in m at the point of largest magnitude, of one q."""
+        np.dot(self._vy, q, out=self._y)
+        np.dot(self._vz, q, out=self._z)
+        mag = np.hypot(self._y, self._z)
+        k = int(np.argmax(mag))
+        return float(mag[k]), float(self._y[k]), float(self._z[k])
 
     def many(self, q: np.ndarray) -> np.ndarray:
         """[m x 3] for q [m x 4]: the largest magnitude (m) and its y and z components."""
-        y, z = q @ self._vy.T, q @ self._vz.T                 # [m x n_beam]
-        mag = np.hypot(y, z)
-        k = np.argmax(mag, axis=1)
-        rows = np.arange(len(q))
-        return np.column_stack([mag[rows, k], y[rows, k], z[rows, k]])
+        return np.column_stack(self.series(q))
+
+    def series(self, q: np.ndarray, chunk: int = 20_000) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(|w|, w_y, w_z) in m of every row of ``q`` [n x 4], as ``__call__`` gives them one by
+        one (``chunk`` rows at a time: a long recording never builds its whole [n x nodes] field)."""
+        q = np.asarray(q, dtype=float)
+        out = np.empty((3, len(q)))
+        for start in range(0, len(q), chunk):
+            block = q[start:start + chunk]
+            y, z = block @ self._vy.T, block @ self._vz.T
+            mag = np.hypot(y, z)
+            k = np.argmax(mag, axis=1)
+            rows = np.arange(len(block))
+            out[:, start:start + len(block)] = mag[rows, k], y[rows, k], z[rows, k]
+        return out[0], out[1], out[2]
 
 
 def paper_table(cfg: ServiceConfig) -> GainTable:
@@ -195,6 +216,12 @@ def check_engine(engine: str, telemetry: bool = False) -> str:
     return engine
 
 
+def run_allocation(mode: str, cfg: ServiceConfig, settings: dict) -> str:
+    """The allocation a run uses: ``experiment.paper_allocation`` for the paper's run, the
+    controller's own for the others."""
+    return settings["paper_allocation"] if mode == "paper" else cfg.controller.allocation
+
+
 def run_mode(mode: str, cfg: ServiceConfig, settings: dict, table: GainTable,
              telemetry_dir: Path | None = None, progress=None, stop: StopRequest | None = None,
              engine: str = "auto", live: str | None = None) -> RunTrace:
@@ -206,7 +233,8 @@ def run_mode(mode: str, cfg: ServiceConfig, settings: dict, table: GainTable,
 
     engine = check_engine(engine, telemetry_dir is not None or live is not None)
     controller_cfg = replace(cfg.controller, pacing="sample",
-                             anti_windup=cfg.controller.anti_windup if mode == "interpolate" else False)
+                             anti_windup=cfg.controller.anti_windup if mode == "interpolate" else False,
+                             allocation=run_allocation(mode, cfg, settings))
     plant = build_plant(cfg, table)
     hal = SimBackend(plant, plant_geometry(cfg), pace="simulated")
     controller = Controller(table, controller_cfg)
@@ -265,16 +293,23 @@ def first_crossing(load: np.ndarray, values: np.ndarray, threshold: float) -> fl
     return float(load[i - 1] + frac * (load[i] - load[i - 1]))
 
 
-def angle_at(trace: RunTrace, threshold: float) -> float | None:
-    a = trace.arrays()
-    above = np.flatnonzero(a["deflection_m"] > threshold)
-    i = int(above[0]) if above.size else len(a["deflection_m"]) - 1
+def direction_at(deflection_m: np.ndarray, y_m: np.ndarray, z_m: np.ndarray,
+                 threshold: float) -> float | None:
+    """The direction of the deflection (deg from +y towards +z, 0..360) where its magnitude
+    first exceeds ``threshold``, else at the last sample (None without samples)."""
+    above = np.flatnonzero(deflection_m > threshold)
+    i = int(above[0]) if above.size else len(deflection_m) - 1
     if i < 0:
         return None
-    return math.degrees(math.atan2(a["deflection_z_m"][i], a["deflection_y_m"][i])) % 360.0
+    return math.degrees(math.atan2(z_m[i], y_m[i])) % 360.0
 
 
-def summarise(trace: RunTrace, design: str) -> dict:
+def angle_at(trace: RunTrace, threshold: float) -> float | None:
+    a = trace.arrays()
+    return direction_at(a["deflection_m"], a["deflection_y_m"], a["deflection_z_m"], threshold)
+
+
+def summarise(trace: RunTrace, design: str, allocation: str) -> dict:
     a = trace.arrays()
     load, d = a["load_n"], a["deflection_m"]
     below_3000 = load <= 3000.0
@@ -288,6 +323,7 @@ def summarise(trace: RunTrace, design: str) -> dict:
         "true_max_deflection_below_3000N_mm": (float(a["true_deflection_m"][below_3000].max() * 1e3)
                                                if below_3000.any() else None),
         "design": design,
+        "allocation": allocation,
         "end": trace.end,
         "fault": trace.fault,
         "plant_time_s": trace.plant_s,
@@ -320,7 +356,7 @@ def run_experiment(cfg: ServiceConfig, settings: dict, tables: dict[str, GainTab
     names = {"uncontrolled": "uncontrolled", "interpolate": "controlled", "paper": "paper_switching"}
     for mode, trace in traces.items():
         design = design_label(None if mode == "uncontrolled" else tables[mode])
-        summary[names[mode]] = summarise(trace, design)
+        summary[names[mode]] = summarise(trace, design, run_allocation(mode, cfg, settings))
     plant_s = sum(t.plant_s for t in traces.values())
     wall_s = sum(t.wall_s for t in traces.values())
     summary["scenario"] = {"source": cfg.source, "bow_amplitude_mm": 1e3 * cfg.plant["bow"]["amplitude"],

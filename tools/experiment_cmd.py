@@ -68,7 +68,9 @@ def summary_table(summary: dict) -> str:
         head.append(f"rig I/O chain: {summary['io_chain']['description']}")
     for label, key in (("interpolated", "controlled"), ("paper 500 N", "paper_switching")):
         if "design" in summary.get(key, {}):
-            head.append(f"design ({label}): {summary[key]['design']}")
+            allocation = summary[key].get("allocation")
+            head.append(f"design ({label}): {summary[key]['design']}"
+                        + (f"; allocation {allocation}" if allocation else ""))
     return "\n".join(head) + "\n" + text
 
 

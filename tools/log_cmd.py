@@ -25,7 +25,8 @@ def add_parser(sub) -> None:
                    help="mdf (MDF4, .mf4), h5 (HDF5), mat73 (MATLAB v7.3), mat (MATLAB v5), csv")
     e.add_argument("--out", metavar="FILE", help="output file (default: FILE with the format's suffix)")
     e.set_defaults(run=run_export)
-    pl = lsub.add_parser("plot", help="figure-7 style plots of a run")
+    pl = lsub.add_parser("plot", help="a run over time (deflection in mm, load, the six voltages, state) "
+                         "and its figure 7")
     pl.add_argument("file", help="telemetry file (.btl)")
     pl.add_argument("dir", help="directory for the PNG files")
     pl.set_defaults(run=run_plot)
@@ -70,10 +71,13 @@ def run_export(args: argparse.Namespace) -> int:
 
 
 def run_plot(args: argparse.Namespace) -> int:
-    from beamctl.tools import plots
+    from beamctl.tools import report
+    from beamctl.tools.plots import save
 
     out_dir = check_dir(args.dir, "DIR")
-    header, rows = _read(args.file, "plot")
-    for path in plots.telemetry_figures(header, rows, out_dir):
-        print(f"wrote {path}")
+    run = report.load_run(args.file)
+    for warning in report.warnings(run):
+        print(f"beamctl log plot: warning: {warning}", file=sys.stderr)
+    for name, fig in report.run_figures(run).items():
+        print(f"wrote {save(fig, out_dir / name)}")
     return 0

@@ -362,6 +362,7 @@ def _run_cycles(f, k, lay, budget, state, nxt, ad, bd, c_meas, meas_lo, inputs, 
                 mon[5, e] = vmin
                 mon[6, e] = vmax
                 mon[7, e] = k[K_STATE]
+                mon[8, e] = 1.0 if (scale_a < 1.0 or scale_b < 1.0) else 0.0
                 k[K_ENTRIES] = e + 1
                 if (k[K_COUNTER] % k[K_CALLBACK_EVERY] == 0 or best > f[F_LIMIT]
                         or t_new >= f[F_END_TIME]):
@@ -595,17 +596,18 @@ class Accelerator:
             loop._last_sample = loop.clock()
 
 
-_NO_MONITOR = np.zeros((8, 1))
+_NO_MONITOR = np.zeros((9, 1))
 
 
 class RunMonitor:
     """A simulated run's decimated trace (every ``decimate``-th cycle: load, deflection from the
-    gauges and its components, the plant's true deflection, voltage range, state), its end (the
+    gauges and its components, the plant's true deflection, voltage range, state, whether the
+    allocation was saturated), its end (the
     deflection limit or the ramp's end: the loop is asked to stop) and its progress. The loop's
     ``on_cycle`` in loop cycles; the kernel fills the same arrays in its own."""
 
     FIELDS = ("load_n", "deflection_m", "deflection_y_m", "deflection_z_m", "true_deflection_m",
-              "v_min", "v_max", "state")
+              "v_min", "v_max", "state", "saturated")
 
     def __init__(self, controller, plant, deflection, limit: float, end_time: float, decimate: int = 10,
                  callback_every: int = 50, progress=None, label: str = "") -> None:
@@ -620,7 +622,7 @@ class RunMonitor:
         self.label = label
         self.counter = 0
         self.entries = 0
-        self._data = np.zeros((8, 4096))
+        self._data = np.zeros((len(self.FIELDS), 4096))
         self.voltages: list[tuple] = []
         self.end = ""
         self.fault = ""
@@ -646,8 +648,9 @@ class RunMonitor:
         d, dy, dz = self.deflection(c.q)
         v = c.voltages
         col = self.reserve()[:, 0]
+        alloc = c.allocator
         col[:] = (plant.axial_load, d, dy, dz, plant.deflection()[0], float(v.min()), float(v.max()),
-                  int(c.state))
+                  int(c.state), alloc.scale_a < 1.0 or alloc.scale_b < 1.0)
         self.commit(1)
         self.after_entry(loop)
 
@@ -673,5 +676,6 @@ class RunMonitor:
         data = self._data[:, :self.entries]
         out = {name: data[i].copy() for i, name in enumerate(self.FIELDS)}
         out["state"] = out["state"].astype(int)
+        out["saturated"] = out["saturated"].astype(bool)
         return out
 

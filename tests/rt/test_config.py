@@ -2,8 +2,14 @@
 
 import pytest
 
-from beamctl.config.schema import ConfigError
-from beamctl.rt.config import CONTROLLER_DEFAULTS, MAX_AMPLIFIER_VOLTAGE_V, RENAMED_KEYS, controller_config
+from beamctl.config.schema import ConfigError, merge, nested
+from beamctl.rt.config import (
+    CONTROLLER_DEFAULTS,
+    MAX_AMPLIFIER_VOLTAGE_V,
+    RENAMED_KEYS,
+    controller_config,
+    settings_by_key,
+)
 
 
 def test_the_amplifiers_150_V_is_the_highest_voltage_a_configuration_may_ask_for():
@@ -55,3 +61,25 @@ def test_a_key_renamed_to_carry_its_unit_is_refused_naming_the_new_key(old, new)
     message = str(err.value)
     assert err.value.key == f"controller.{old}", message
     assert f"controller.{new} in its place" in message and "\n" not in message, message
+
+
+def test_the_allocation_is_scale_unless_set_to_the_paper_s_clip_and_nothing_else():
+    assert controller_config().allocation == "scale", "the default keeps the force's direction"
+    assert controller_config({"allocation": "clip"}).allocation == "clip"
+    with pytest.raises(ConfigError) as err:
+        controller_config({"allocation": "spread"}, "lab.yaml", "controller.")
+    assert err.value.key == "controller.allocation", str(err.value)
+    assert "'scale', 'clip'" in str(err.value)
+
+
+def test_the_settings_by_key_are_the_configuration_keys_and_read_back_to_the_same_settings():
+    """A recording states its settings under the keys a file sets (rt/telemetry.py); every key,
+    each once, and a file written from them gives the same settings."""
+    changed = controller_config({"allocation": "clip", "safety": {"ramp_time_s": 0.7},
+                                 "actuators": {"orientation_deg": [10.0, 20.0]}})
+    flat = settings_by_key(changed)
+    assert set(flat) == _keys(CONTROLLER_DEFAULTS)
+    data: dict = {}
+    for key, value in flat.items():
+        data = merge(data, nested(key, value))
+    assert controller_config(data) == changed

@@ -228,12 +228,14 @@ from beamctl.hal.base import Sample
 from beamctl.rt.config import controller_config
 from beamctl.rt.controller import Controller
 
-c = Controller(load_table(paper_table_path()), controller_config())
+# a saturation that lasts the whole probe is no fault here (the fault's message is allocated once)
+c = Controller(load_table(paper_table_path()),
+               controller_config({"allocation": ALLOCATION, "safety": {"saturation_time_s": 100.0}}))
 rng = np.random.default_rng(0)
 samples = []
 for k in range(50):
     s = Sample()
-    s.strains[:] = 1e-6 * rng.standard_normal(4)
+    s.strains[:] = OFFSET + 1e-6 * rng.standard_normal(4)
     s.axial_load = 1000.0 + 500 * k / 50
     samples.append(s)
 c.arm(samples[0])
@@ -244,6 +246,7 @@ for s in many:
 step, get, reset = c.step, tracemalloc.get_traced_memory, tracemalloc.reset_peak
 tracemalloc.start()
 worst = 0
+saturated = 0
 start, _ = get()
 for s in many:
     reset()
@@ -251,18 +254,24 @@ for s in many:
     step(s)
     _, peak = get()
     worst = max(worst, peak - base)
+    saturated += c.allocator.scale_a < 1.0
 end, _ = get()
-print(json.dumps({"kept": end - start, "peak": worst, "state": c.state.name,
+print(json.dumps({"kept": end - start, "peak": worst, "state": c.state.name, "saturated": saturated,
                   "array_bytes": int(np.zeros(4).__sizeof__())}))
 """
 
 
-def test_the_step_allocates_no_arrays(tmp_path):
-    out = subprocess.run([sys.executable, "-c", _ALLOCATION_PROBE], capture_output=True, text=True,
+# a beam vibrating about straight: the stacks have room; bent (a strain offset the integral
+# action answers): the allocation saturates, and ``clip`` clips stacks
+@pytest.mark.parametrize(("allocation", "offset"), [("scale", 0.0), ("scale", 1e-4), ("clip", 1e-4)])
+def test_the_step_allocates_no_arrays(tmp_path, allocation, offset):
+    probe_code = "ALLOCATION, OFFSET = " + repr((allocation, offset)) + "\n" + _ALLOCATION_PROBE
+    out = subprocess.run([sys.executable, "-c", probe_code], capture_output=True, text=True,
                          cwd=tmp_path, timeout=120, check=False)
     assert out.returncode == 0, out.stderr
     probe = json.loads(out.stdout)
     assert probe["state"] == "RUNNING"
+    assert (probe["saturated"] > 0) == (offset > 0), f"saturated in {probe['saturated']} of 1000 steps"
     # A step's scalar arithmetic keeps a few Python floats (24 bytes each) alive at a time; one
     # more ndarray (over 100 bytes for the object and its data) on top of them exceeds 256 bytes.
     assert probe["peak"] < 256, (

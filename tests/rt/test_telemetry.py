@@ -245,3 +245,24 @@ def test_recording_settings_reach_the_writer():
     cfg = controller_config({"telemetry": {"mode": "triggered", "pre_trigger_s": 0.5, "post_trigger_s": 3}})
     assert cfg.telemetry.recording == Recording("triggered", decimation=10, pre_trigger_s=0.5,
                                                 post_trigger_s=3.0)
+
+
+def test_a_controller_s_recording_names_its_model_and_settings_under_the_caller_s_meta(tmp_path):
+    """A reader turns q into millimetres with the model's mode shapes and draws the voltage
+    limits the controller had: the header holds both, and what the caller adds."""
+    from beamctl.gains.defaults import paper_table_path
+    from beamctl.gains.table import load_table
+    from beamctl.rt.config import controller_config
+    from beamctl.rt.controller import Controller
+
+    table = load_table(paper_table_path())
+    controller = Controller(table, controller_config({"allocation": "clip",
+                                                      "actuators": {"max_voltage_v": 140.0}}))
+    with TelemetryWriter.for_controller(tmp_path / "run.btl", controller, meta={"mode": "paper"}):
+        pass
+    meta = read_telemetry(tmp_path / "run.btl")[0]["meta"]
+    assert meta["mode"] == "paper" and meta["sample_rate_hz"] == 2500.0
+    assert meta["controller"]["allocation"] == "clip"
+    assert meta["controller"]["actuators.max_voltage_v"] == 140.0
+    assert meta["model"] == table.model_parameters.to_dict(), "the gain table's model, whole"
+    assert meta["design"]["kind"] == "integral-lqr"

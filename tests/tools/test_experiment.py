@@ -14,13 +14,21 @@ from beamctl.rt.safety import State
 from beamctl.rt.telemetry import read_telemetry
 from beamctl.tools import experiment_cmd, plots
 from beamctl.tools.cli import main
-from beamctl.tools.experiment import BOW_AMPLITUDE_M, experiment_config, first_crossing, run_mode
+from beamctl.tools.experiment import (
+    BOW_AMPLITUDE_M,
+    direction_at,
+    experiment_config,
+    first_crossing,
+    paper_table,
+    run_mode,
+)
 from beamctl.tools.experiment_cmd import REPORT_FILES
 from beamctl.tools.service import load_gain_table, plant_parameters
 from beamctl.tools.signals import Interrupted, stop_on_signals
 from tests.tools.processes import beamctl, interrupt_when
 
 CRITICAL_LOAD_N = 3193.5
+FAST_RAMP = {"start": 260.0, "end": 3400.0, "rate": 200.0, "hold": 0.2}
 
 
 @pytest.fixture(scope="module")
@@ -104,6 +112,7 @@ def test_scenario_overrides_the_plant_separately_from_the_model():
     ({"experiment": {"deflection_limt": 1}}, "experiment.deflection_limt"),
     ({"plant": {"load": {"rate": -5}}}, "plant.load.rate"),
     ({"plants": {}}, "plants"),
+    ({"experiment": {"paper_allocation": "spread"}}, "experiment.paper_allocation"),
 ])
 def test_bad_scenario_is_refused_naming_the_key(tmp_path, capsys, data, key):
     import yaml
@@ -289,3 +298,82 @@ def test_the_shipped_design_holds_a_stiffer_late_rig_beyond_its_own_critical_loa
     # once the start's transient (from the imperfect beam's 0.6 mm sag at 2600 N) has settled
     below = deflection[(load > 2800.0) & (load < own_critical)]
     assert below.max() < 0.5e-3, f"largest deflection below Fx,cr {below.max() * 1e3:.3f} mm"
+
+
+# -- the paper's run with the paper's allocation: each stack clipped at its own limit ------------
+
+def _clipped_paper_run(directory, **controller):
+    cfg, settings = experiment_config({"plant": {"load": FAST_RAMP}, "controller": controller,
+                                       "experiment": {"paper_allocation": "clip"}})
+    trace = run_mode("paper", cfg, settings, paper_table(cfg), telemetry_dir=directory)
+    return trace, directory / "telemetry_paper.btl"
+
+
+@pytest.fixture(scope="module")
+def clipped(tmp_path_factory):
+    """The paper's run with clipped stacks on the fast ramp, under the shipped safety settings."""
+    return _clipped_paper_run(tmp_path_factory.mktemp("clip"))
+
+
+def _turn_when_saturated_deg(path) -> np.ndarray:
+    """Per controlled sample with a saturated support: the angle in deg between the force the
+    law asked of support A and the one its stacks gave."""
+    _, rows = read_telemetry(path)
+    running = rows[:, COL["state"]] == State.RUNNING
+    saturated = running & ((rows[:, COL["flags"]].astype(int) & 1) != 0) & (rows[:, COL["scale_A"]] > 0)
+    asked = rows[saturated][:, [COL["force_y_A_N"], COL["force_z_A_N"]]]
+    given = rows[saturated][:, [COL["applied_force_y_A_N"], COL["applied_force_z_A_N"]]]
+    turn = np.degrees(np.arctan2(given[:, 1], given[:, 0]) - np.arctan2(asked[:, 1], asked[:, 0]))
+    return np.abs((turn + 180.0) % 360.0 - 180.0)
+
+
+def test_clipped_stacks_turn_the_force_where_the_scaled_allocation_keeps_it(report, clipped):
+    """Saturated, the scaled allocation gives less force in the direction the law asks; the
+    clipped one gives the stacks that still have room their share, in another direction: by a
+    little when the first stack just reaches its limit, more as its shortfall grows (about
+    1 deg after the 0.5 s the shipped safety lets it last)."""
+    _, folder = report
+    scaled = _turn_when_saturated_deg(folder / "telemetry_paper.btl")
+    turned = _turn_when_saturated_deg(clipped[1])
+    assert scaled.size and turned.size, "both runs saturate"
+    assert scaled.max() < 1e-6, f"scale turned the force by {scaled.max()} deg"
+    assert np.median(turned) > 0.1 and turned.max() > 0.5, (
+        f"clip turned the force by a median {np.median(turned):.3f} deg, at most {turned.max():.3f} deg")
+
+
+def test_with_clipped_stacks_the_first_stack_reaches_150_V_alone_and_early(report, clipped):
+    """Around the bias, without the centring of the scaled allocation, the stack the force
+    points at runs out first (150 V) while the other two still have room: near 2950 N, 270 N
+    before the scaled allocation runs out. The saturation then lasts: the shipped safety lets
+    go after 0.5 s (100 N of this ramp) and the beam fails early, in the bow's direction."""
+    trace, path = clipped
+    _, rows = read_telemetry(path)
+    running = rows[:, COL["state"]] == State.RUNNING
+    v = rows[:, COL["voltage_a1_V"]:COL["voltage_a1_V"] + 6]
+    at_limit = (v == 0.0) | (v == 150.0)
+    first = int(np.flatnonzero(running & at_limit.any(axis=1))[0])
+    assert at_limit[first].reshape(2, 3).sum(axis=1).max() == 1, f"one stack a support: {v[first]}"
+    first_load = rows[first, COL["load_N"]]
+    assert 2900.0 < first_load < 3050.0, f"first stack at its limit at {first_load:.0f} N"
+    assert trace.fault.startswith("PERSISTENT_SATURATION"), trace.fault
+    a = trace.arrays()
+    lost = first_crossing(a["load_n"], a["deflection_m"], 1e-3)
+    s, _ = report
+    assert lost < s["paper_switching"]["load_at_1.0mm_N"] - 100.0, (lost, s["paper_switching"])
+    angle = direction_at(a["deflection_m"], a["deflection_y_m"], a["deflection_z_m"], 1e-3)
+    assert angle == pytest.approx(234.0, abs=2.0), "the stacks at bias: the bow's direction"
+
+
+def test_clipped_stacks_that_keep_trying_hold_as_long_and_fail_near_the_bow_s_direction(report, tmp_path):
+    """Without the saturation fault (as the paper's setup, whose other stacks "continuously try
+    to stabilize"): the unclipped stacks hold the beam until they too run out, within 1 % of the
+    scaled allocation's load. The beam then fails within 10 deg of the bow's direction, not at
+    the paper's 128 deg: the simulated rig does not reproduce that turn."""
+    trace, _ = _clipped_paper_run(tmp_path, safety={"saturation_time_s": 1000.0})
+    assert trace.fault == "", trace.fault
+    a = trace.arrays()
+    lost = first_crossing(a["load_n"], a["deflection_m"], 1e-3)
+    s, _ = report
+    assert lost == pytest.approx(s["paper_switching"]["load_at_1.0mm_N"], rel=0.01)
+    angle = direction_at(a["deflection_m"], a["deflection_y_m"], a["deflection_z_m"], 1e-3)
+    assert 234.0 <= angle < 244.0, f"failed at {angle:.1f} deg"

@@ -81,7 +81,8 @@ def test_figure_5a_draws_the_measurement_against_the_model_before_and_after(iden
     figs = tmp_path / "figs"
     for png in (tmp_path / "fit" / "fig5a_frequency_response.png", figs / "fig5a_frequency_response.png",
                 figs / "fig5b_eigenfrequencies.png"):
-        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000, png
+        # a drawn figure, not an empty canvas (in 128 palette colours, a blank one is under 5 kB)
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000, png
 
 
 def test_a_fit_that_did_not_converge_writes_nothing_and_exits_1(identified, tmp_path, capsys):

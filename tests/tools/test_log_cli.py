@@ -48,10 +48,15 @@ def test_export_csv_has_a_header_row(recording, tmp_path):
     assert len(lines) == 1 + len(read_telemetry(recording)[1])
 
 
-def test_plot_draws_figure_7_and_voltages(recording, tmp_path):
+def test_plot_draws_the_run_over_time_and_its_path(recording, tmp_path, capsys):
+    """The recording's load stays at 1500 N: no deflection-versus-load figure. It was written
+    without the header's model: the deflection in mm comes from Table 1, and the plot says so."""
     assert main(["log", "plot", str(recording), str(tmp_path)]) == 0
-    for name in ("fig7_modal_displacement.png", "voltages.png"):
+    for name in ("run_over_time.png", "fig7b_run.png"):
         assert (tmp_path / name).stat().st_size > 10_000
+    assert not (tmp_path / "fig7a_run.png").exists()
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "names no model" in err and "Table 1" in err, err
 
 
 def test_a_file_that_is_not_telemetry_is_refused(tmp_path, capsys):
@@ -89,8 +94,10 @@ def test_export_of_a_file_cut_off_mid_row_keeps_the_complete_rows_and_warns(reco
 def test_plot_of_a_file_cut_off_mid_row_warns_too(recording, cut_off, tmp_path, capsys):
     _, rows = read_telemetry(recording)
     assert main(["log", "plot", str(cut_off), str(tmp_path / "figs")]) == 0
-    _warning(capsys.readouterr().err, len(rows) - 1, 8 * len(RECORD_COLUMNS) - 100)
-    assert (tmp_path / "figs" / "voltages.png").exists()
+    cut, model = capsys.readouterr().err.splitlines(keepends=True)
+    _warning(cut, len(rows) - 1, 8 * len(RECORD_COLUMNS) - 100)
+    assert "names no model" in model
+    assert (tmp_path / "figs" / "run_over_time.png").exists()
 
 
 def test_a_complete_file_exports_without_a_warning(recording, tmp_path, capsys):

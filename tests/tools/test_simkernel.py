@@ -53,6 +53,7 @@ def _assert_same_run(loop, kernel):
         "or a cycle run twice")
     np.testing.assert_array_equal(b["load_n"], a["load_n"], err_msg="the monitor's samples differ in load")
     np.testing.assert_array_equal(b["state"], a["state"], err_msg="the lifecycle differs")
+    np.testing.assert_array_equal(b["saturated"], a["saturated"], err_msg="saturation differs")
     assert kernel.end == loop.end and kernel.fault == loop.fault
     d = a["deflection_m"]
     failing = np.flatnonzero(d > 1.0e-3)
@@ -66,7 +67,7 @@ def _assert_same_run(loop, kernel):
         np.testing.assert_allclose(b[key][held], a[key][held], rtol=0, atol=1e-9 * 150.0,
                                    err_msg=f"{key} differs beyond rounding")
     for threshold in ("load_at_0.5mm_N", "load_at_1.0mm_N"):
-        x, y = summarise(loop, "")[threshold], summarise(kernel, "")[threshold]
+        x, y = summarise(loop, "", "")[threshold], summarise(kernel, "", "")[threshold]
         assert y == pytest.approx(x, abs=0.5), f"{threshold}: loop {x} N, kernel {y} N"
 
 
