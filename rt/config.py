@@ -205,7 +205,8 @@ def settings_by_key(config: ControllerConfig) -> dict[str, Any]:
     def walk(value: Any, key: str) -> None:
         if isinstance(value, dict):
             for k, v in value.items():
-                walk(v, f"{key}.{k}" if key else k)
+                # the recording's settings sit beside the other telemetry keys in a file
+                walk(v, key if (key, k) == ("telemetry", "recording") else (f"{key}.{k}" if key else k))
         else:
             flat[RENAMED_KEYS.get(key, key)] = list(value) if isinstance(value, tuple) else value
 
