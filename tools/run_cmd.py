@@ -35,11 +35,11 @@ from beamctl.tools.outputs import check_file, check_new_file
 from beamctl.tools.sdnotify import Notifier
 from beamctl.tools.service import (
     ServiceConfig,
+    TableSwaps,
     build_hal,
     check_voltage_range,
     load_gain_table,
     load_service_config,
-    table_for_swap,
 )
 from beamctl.tools.signals import stop_on_signals
 
@@ -127,9 +127,9 @@ def _serve(args: argparse.Namespace, cfg: ServiceConfig, path: Path, table: Gain
         loop = ControlLoop(controller, hal, telemetry=telemetry, stop_on_fault=False,
                            max_cycles=max_cycles, on_cycle=on_cycle if notifier.watchdog_interval_s else None,
                            stop=stop, start=not args.hold)
+        swaps = TableSwaps(cfg, hal, controller)
         server.serve(loop, table=str(Path(cfg.table_path).absolute()), table_sha256=table.sha256,
-                     prepare_table=lambda table_path: table_for_swap(cfg, hal, controller, table_path),
-                     log=_log)
+                     prepare_table=swaps.prepare, log=_log)
         rearm = None
         if threading.current_thread() is threading.main_thread():
             rearm = signal.signal(signal.SIGUSR1, lambda *_: loop.request_rearm())
@@ -150,6 +150,8 @@ def _serve(args: argparse.Namespace, cfg: ServiceConfig, path: Path, table: Gain
             if rearm is not None:
                 signal.signal(signal.SIGUSR1, rearm)
             notifier.stopping()
+            server.close()          # no command after the loop: the reader process can end
+            swaps.close()
             hal.close()
     summary = {"state": result.state, "fault": result.fault, "reason": result.reason, "cycles": result.cycles,
                "late_answers": controller.safety.late_answers, "backlog_discarded": result.backlog_discarded,
