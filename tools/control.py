@@ -11,16 +11,19 @@ at most 64 KiB)::
     {"ok": true | false, "command": "...", "message": "...", "status": {...}}
 
 ``status`` holds the state, the fault and its reason, whether the stacks are at bias, the
-load-cell reading in N, the cycles run, and the gain table's path and SHA-256. A request that
-cannot be read (not UTF-8, not JSON, too long, an unknown command, nothing within the read
-time-out) is answered ``ok: false`` saying why, and the server goes on serving.
+load-cell reading in N, the cycles run, and the gain table's path and SHA-256. A command is
+answered once the loop has decided it (within a few cycles); ``gains`` once the table has
+also been read and checked, which takes seconds the first time (tools/service.py
+``TableSwaps``): a client allows it two minutes. A request that cannot be read (not UTF-8,
+not JSON, too long, an unknown command, nothing within the read time-out) is answered
+``ok: false`` saying why, and the server goes on serving.
 
 Who may command is whoever may connect: the socket file is made 0660, so the service's user and
-its group. The server runs in two threads of its own and never changes the controller: a command goes
-to the control loop (``OperatorCommand``, rt/loop.py), which carries it out or refuses it
-between two cycles and records it in the telemetry; a gain table is loaded and checked here, off
-the loop, and reaches the loop ready to swap in. A client that stalls costs nothing but its
-read time-out.
+its group. The server runs in two threads of its own and never changes the controller: a
+command goes to the control loop (``OperatorCommand``, rt/loop.py), which carries it out or
+refuses it between two cycles and records it in the telemetry; a gain table is read (in a
+process of its own) and checked off the loop, and reaches the loop ready to swap in. A client
+that stalls costs nothing but its read time-out.
 
 Where the socket is (``default_socket_path``): ``$BEAMCTL_CONTROL_SOCKET``, else
 ``/run/beamctl/control.sock`` when ``/run/beamctl`` is there to be used (the lab's service: systemd
@@ -309,7 +312,9 @@ class ControlServer:
 
     def close(self) -> None:
         """Stop answering (a command under way is answered first) and remove the socket file if
-        it is still this server's."""
+        it is still this server's. Once is enough; again does nothing."""
+        if self._socket.fileno() < 0:
+            return
         self._closing.set()
         for thread in self._threads:
             thread.join()

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from beamctl.tools.control import ControlError, default_socket_path, request
 
+GAINS_TIMEOUT_S = 120.0
 ACTIONS = {
     "status": "the service's state, fault, load and gain table",
     "start": "start controlling (a service started with --hold, waiting at bias)",
@@ -60,7 +61,8 @@ def run(args: argparse.Namespace) -> int:
         payload["table"] = str(Path(args.table).absolute())   # the service runs in a directory of its own
     path = Path(args.socket) if args.socket else default_socket_path()
     try:
-        reply = request(path, payload)
+        # a gain table is read and checked before the answer: seconds, the first time
+        reply = request(path, payload, timeout_s=GAINS_TIMEOUT_S if name == "gains" else 10.0)
     except ControlError as exc:
         print(f"beamctl ctl {name}: error: {exc}", file=sys.stderr)
         return 2

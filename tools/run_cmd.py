@@ -38,11 +38,11 @@ from beamctl.tools.outputs import check_file, check_new_file
 from beamctl.tools.sdnotify import Notifier
 from beamctl.tools.service import (
     ServiceConfig,
+    TableSwaps,
     build_hal,
     check_voltage_range,
     load_gain_table,
     load_service_config,
-    table_for_swap,
 )
 from beamctl.tools.signals import stop_on_signals
 
@@ -138,9 +138,9 @@ def _serve(args: argparse.Namespace, cfg: ServiceConfig, path: Path, table: Gain
         loop = ControlLoop(controller, hal, telemetry=telemetry, stop_on_fault=False,
                            max_cycles=max_cycles, on_cycle=on_cycle if notifier.watchdog_interval_s else None,
                            stop=stop, start=not args.hold)
+        swaps = TableSwaps(cfg, hal, controller)
         server.serve(loop, table=str(Path(cfg.table_path).absolute()), table_sha256=table.sha256,
-                     prepare_table=lambda table_path: table_for_swap(cfg, hal, controller, table_path),
-                     log=_log)
+                     prepare_table=swaps.prepare, log=_log)
         if live is not None:
             live_view.watch_loop(live, loop, telemetry)
         rearm = None
@@ -163,6 +163,8 @@ def _serve(args: argparse.Namespace, cfg: ServiceConfig, path: Path, table: Gain
             if rearm is not None:
                 signal.signal(signal.SIGUSR1, rearm)
             notifier.stopping()
+            server.close()          # no command after the loop: the reader process can end
+            swaps.close()
             hal.close()
             if live is not None:
                 live.close()

@@ -323,3 +323,36 @@ def test_the_default_socket_path(monkeypatch, tmp_path):
     (tmp_path / "xdg" / "beamctl").mkdir()
     (tmp_path / "xdg" / "beamctl" / "control.sock").write_text("")
     assert default_socket_path() == tmp_path / "xdg" / "beamctl" / "control.sock"
+
+
+def test_a_table_swap_is_read_off_the_service_and_checked_as_at_a_start(tmp_path):
+    """The checks of ``ctl gains`` without a running service: a table written for another I/O
+    chain (the rig's delay and filters) or changed after it was built is refused naming the
+    field; a good one comes back prepared for the controller; ``close`` ends the reader."""
+    import dataclasses
+
+    from beamctl.gains.table import write_table
+    from beamctl.models.iochain import IOChain
+    from beamctl.rt.controller import Controller
+    from beamctl.tools.service import TableSwaps, build_hal, load_gain_table, load_service_config
+
+    cfg = dataclasses.replace(load_service_config(None), table_path=paper_table_path())
+    table = load_gain_table(cfg)
+    controller = Controller(table, cfg.controller)
+    delayed = write_table(dataclasses.replace(table, design=dataclasses.replace(
+        table.design, io=IOChain(delay_samples=1.0))), tmp_path / "delayed.yaml")
+    changed = tmp_path / "changed.yaml"
+    changed.write_text(paper_table_path().read_text().replace("velocity_cutoff_hz: 145.5",
+                                                              "velocity_cutoff_hz: 150.0"))
+    swaps = TableSwaps(cfg, build_hal(cfg, table), controller)
+    try:
+        with pytest.raises(ValueError, match=r"design\.io"):
+            swaps.prepare(delayed)
+        with pytest.raises(ValueError, match="sha256.*changed after it was built"):
+            swaps.prepare(changed)
+        prepared = swaps.prepare(paper_table_path())
+        reader = swaps._reader
+    finally:
+        swaps.close()
+    assert prepared.table.sha256 == table.sha256 and prepared.buffer.size == controller.record.size + 4
+    assert reader.returncode == 0, "the reader process did not end with the swaps"

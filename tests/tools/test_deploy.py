@@ -22,3 +22,13 @@ def test_systemd_unit_runs_the_service_with_watchdog_and_realtime_limits():
     assert "beamctl run --config" in service["ExecStart"] and "--require-rt" in service["ExecStart"]
     assert service["LimitMEMLOCK"] == "infinity" and service["LimitRTPRIO"] == "99"
     assert service["Restart"] == "on-failure"
+
+
+def test_the_unit_makes_the_directory_where_beamctl_ctl_looks_for_the_service():
+    from beamctl.tools import control
+
+    unit = configparser.ConfigParser(strict=False, interpolation=None)
+    unit.read(DEPLOY / "beamctl.service")
+    runtime = Path("/run") / unit["Service"]["RuntimeDirectory"]
+    assert runtime == control.RUN_DIR, f"the unit makes {runtime}, beamctl ctl looks in {control.RUN_DIR}"
+    assert load_service_config(DEPLOY / "lab.yaml").control_socket == "", "the lab uses the default socket"
