@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 from beamctl.models import build_model, critical_load
@@ -53,12 +54,14 @@ def deflection_columns(controller: Controller) -> Derived:
     return Derived(DEFLECTION_COLUMNS, lambda rows: deflection.many(rows[:, first:first + 4]))
 
 
-def live_publisher(path: str | Path, controller: Controller, label: str) -> LivePublisher:
+def live_publisher(path: str | Path, controller: Controller, label: str,
+                   table_path: str | None = None) -> LivePublisher:
     """A publisher of ``controller``'s records to the viewer at ``path`` (``label``: what runs,
-    for the page's title). Close it after the run."""
+    and ``table_path``: the gain table it starts with, for the page's title). Close it after the
+    run."""
     table = controller.table
     actuators = controller.config.actuators
-    meta = {"label": label, "schedule": table.schedule.mode,
+    meta = {"label": label, "table": table_path, "schedule": table.schedule.mode,
             "table_loads_n": [float(table.loads_n[0]), float(table.loads_n[-1])],
             "critical_load_n": critical_load(build_model(table.model_parameters)),
             "voltage_limits_v": [actuators.min_voltage_v, actuators.max_voltage_v],
@@ -69,14 +72,24 @@ def live_publisher(path: str | Path, controller: Controller, label: str) -> Live
                          derived=deflection_columns(controller))
 
 
-def watch_loop(publisher: LivePublisher, loop, telemetry) -> None:
-    """Send the loop's counters with each datagram (read in the writer's thread: plain ints the
-    loop updates, nothing the loop waits for)."""
+def watch_loop(publisher: LivePublisher, loop, telemetry,
+               table_path: Callable[[], str] | None = None) -> None:
+    """Send the loop's counters with each datagram, and the gain table running now (its load
+    range and schedule; its path from ``table_path`` if given): read in the writer's thread,
+    plain values the loop updates, nothing the loop waits for. An operator's table swap shows on
+    the page from the next datagram on."""
     timing = loop.timing
+    controller = loop.controller
 
     def status() -> dict:
-        return {"cycles": loop.cycles, "overruns": timing.overruns, "missed_periods": timing.missed_periods,
-                "telemetry_dropped": telemetry.dropped}
+        table = controller.table        # one object: its loads and schedule belong together
+        running = {"cycles": loop.cycles, "overruns": timing.overruns,
+                   "missed_periods": timing.missed_periods, "telemetry_dropped": telemetry.dropped,
+                   "schedule": table.schedule.mode,
+                   "table_loads_n": [float(table.loads_n[0]), float(table.loads_n[-1])]}
+        if table_path is not None:
+            running["table"] = table_path()
+        return running
 
     publisher.status = status
 

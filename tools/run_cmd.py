@@ -114,8 +114,8 @@ def _serve(args: argparse.Namespace, cfg: ServiceConfig, path: Path, table: Gain
     """The service with its control socket bound: telemetry, the loop, the summary."""
     live = None
     if args.live is not None:
-        live = live_view.live_publisher(
-            args.live, controller, f"beamctl run, {cfg.hal.backend} backend, gain table {cfg.table_path}")
+        live = live_view.live_publisher(args.live, controller, f"beamctl run, {cfg.hal.backend} backend",
+                                        table_path=str(cfg.table_path))
     duration_s = cfg.duration_s if args.duration is None else args.duration
     max_cycles = int(duration_s * table.design.sample_rate_hz) if duration_s else None
     # the banner goes to stderr with the other messages: stdout carries the summary alone
@@ -142,7 +142,7 @@ def _serve(args: argparse.Namespace, cfg: ServiceConfig, path: Path, table: Gain
         server.serve(loop, table=str(Path(cfg.table_path).absolute()), table_sha256=table.sha256,
                      prepare_table=swaps.prepare, log=_log)
         if live is not None:
-            live_view.watch_loop(live, loop, telemetry)
+            live_view.watch_loop(live, loop, telemetry, table_path=lambda: server.table)
         rearm = None
         if threading.current_thread() is threading.main_thread():
             rearm = signal.signal(signal.SIGUSR1, lambda *_: loop.request_rearm())
