@@ -187,7 +187,7 @@ def _read_line(s: socket.socket, deadline: float) -> bytes:
 
 
 # -- the server -------------------------------------------------------------------------------------
-def _prepare_directory(directory: Path) -> None:
+def prepare_socket_directory(directory: Path) -> None:
     """Make the socket's directory if missing (0700 for the private one in /tmp, 0755 else: the
     socket file's own mode decides who may command). The private directory must be the user's
     own and writable by nobody else."""
@@ -227,7 +227,7 @@ def bind_socket(path: str | Path) -> socket.socket:
     """A listening socket at ``path``, its file 0660. A socket file left by a service that has
     ended is replaced; one a service answers at is refused, as is any other file."""
     p = check_socket_path(path)
-    _prepare_directory(p.parent)
+    prepare_socket_directory(p.parent)
     try:
         st = os.lstat(p)
     except FileNotFoundError:

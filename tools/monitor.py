@@ -212,7 +212,7 @@ def bind_live_socket(path: str) -> socket.socket:
     that was killed is replaced; one that a running monitor holds is refused."""
     path = check_socket_path(path, "--live")
     try:
-        control._prepare_directory(Path(path).parent)      # the same rules as the control socket's
+        control.prepare_socket_directory(Path(path).parent)      # the same rules as the control socket's
     except control.ControlError as exc:
         raise LiveError(f"--live {path}: {exc}") from None
     if os.path.lexists(path):
