@@ -6,6 +6,7 @@ import time
 
 import can
 import numpy as np
+import pytest
 
 from beamctl.hal.dbc import Contract
 from tests.hal.rigs import GEOMETRY, make_plant
@@ -92,37 +93,30 @@ def test_only_valid_new_voltage_frames_move_the_stacks():
     assert (emulator.rejected["behind"], emulator.rejected["repeated"]) == (1, 2), emulator.rejected
 
 
-def test_the_daq_ramps_to_bias_by_itself_when_the_controller_falls_silent():
-    """Valid answers at 120 V, then none: after the silence time-out the stacks ramp linearly to
-    the 75 V bias within the fallback ramp time, and stay there."""
+def _answer_then_fall_silent(channel: str, silence: float, ramp: float):
+    """Answer the emulator's samples at 120 V as a controller does (200 of them), then fall
+    silent: (times from the last answer, the first stack's voltages, fallbacks after the last
+    answer as far as the answering thread saw them)."""
     from beamctl.hal.emulator import CanPlantEmulator
 
     log = []
-    emulator_bus = can.Bus(interface="virtual", channel="emulator-fallback")
-    controller_bus = can.Bus(interface="virtual", channel="emulator-fallback")
-    silence, ramp = 0.02, 0.1
+    emulator_bus = can.Bus(interface="virtual", channel=channel)
+    controller_bus = can.Bus(interface="virtual", channel=channel)
     emulator = CanPlantEmulator(emulator_bus, make_plant(), GEOMETRY, pace="wallclock",
                                 silence_timeout_s=silence, fallback_ramp_s=ramp,
                                 on_step=lambda plant, v: log.append((time.monotonic(), v[0])))
     try:
         emulator.start()
         values = [0.0] * len(CONTRACT.strains.names)
-        # answer samples as a controller does: 200, the last 100 of them and the last 60 ms
-        # without a fallback (a test thread starved of the processor for the time-out on a busy
-        # machine is a silent controller too, and the DAQ rightly falls back)
-        answered, steady_since, fallbacks = 0, 0, emulator.fallbacks
-        steady_t = start = time.monotonic()
-        deadline = start + 60.0
-        while answered < 200 or answered - steady_since < 100 or time.monotonic() - steady_t < 0.06:
-            assert time.monotonic() < deadline, f"no 100 answers in a row without a fallback ({answered})"
+        answered, fallbacks = 0, emulator.fallbacks
+        while answered < 200:
             msg = controller_bus.recv(1.0)
             assert msg is not None, "the emulator sent no sample"
             if msg.arbitration_id == CONTRACT.strains.frame_id:
                 CONTRACT.strains.decode_into(msg.data, values)
                 _answer(controller_bus, int(values[CONTRACT.strains.index("sequence")]), 120.0)
                 answered += 1
-                if emulator.fallbacks != fallbacks:
-                    steady_since, steady_t, fallbacks = answered, time.monotonic(), emulator.fallbacks
+                fallbacks = emulator.fallbacks
         last_answer = time.monotonic()
         time.sleep(silence + ramp + 0.1)
     finally:
@@ -130,8 +124,24 @@ def test_the_daq_ramps_to_bias_by_itself_when_the_controller_falls_silent():
         emulator_bus.shutdown()
         controller_bus.shutdown()
     t = np.array([e[0] for e in log]) - last_answer
-    v = np.array([e[1] for e in log])
-    fell_back = emulator.fallbacks - fallbacks
+    return t, np.array([e[1] for e in log]), emulator.fallbacks - fallbacks
+
+
+def test_the_daq_ramps_to_bias_by_itself_when_the_controller_falls_silent():
+    """Valid answers at 120 V, then none: after the silence time-out the stacks ramp linearly to
+    the 75 V bias within the fallback ramp time, and stay there."""
+    silence, ramp = 0.02, 0.1
+    # The contract is about what follows a steady controller: the 60 ms before its last answer
+    # must be at 120 V. A test thread (or the emulator's) held up for the time-out on a busy
+    # machine is a silent controller too, and the DAQ rightly falls back then; such a run is no
+    # steady start, and the scenario is run again (at most 5 times).
+    for attempt in range(5):
+        t, v, fell_back = _answer_then_fall_silent(f"emulator-fallback-{attempt}", silence, ramp)
+        if np.all(v[(t > -0.06) & (t <= 0.0)] == 120.0):
+            break
+    else:
+        pytest.fail("in 5 runs the DAQ never held 120 V for the 60 ms before the last answer: "
+                    "the machine holds the test's threads up for longer than the 20 ms time-out")
     assert fell_back == 1, f"{fell_back} fallbacks to bias after the last answer (one is due)"
     held = v[(t > -0.04) & (t < silence * 0.9)]
     assert np.all(held == 120.0), "held the last valid voltages within the time-out"
