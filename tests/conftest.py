@@ -43,3 +43,15 @@ def control_socket(monkeypatch):
     monkeypatch.setenv("BEAMCTL_CONTROL_SOCKET", str(path))
     yield path
     shutil.rmtree(directory, ignore_errors=True)
+
+
+@pytest.fixture(scope="session")
+def other_table(tmp_path_factory):
+    """A second table of the paper's design (its rate, I/O chain and model) on a 250 N grid: one a
+    running service may swap to."""
+    from beamctl.tools.cli import main
+
+    out = tmp_path_factory.mktemp("tables") / "coarse.yaml"
+    assert main(["gains", "build", "--design", "integral-lqr", "--no-robust", "--grid", "0:4000:250",
+                 "--out", str(out)]) == 0
+    return out

@@ -102,15 +102,6 @@ def service(tmp_path):
         s.process.wait(timeout=DEADLINE_S)
 
 
-@pytest.fixture(scope="module")
-def other_table(tmp_path_factory):
-    """A second table of the paper's design (its rate, I/O chain and model) on a coarser grid."""
-    out = tmp_path_factory.mktemp("tables") / "coarse.yaml"
-    assert main(["gains", "build", "--design", "integral-lqr", "--no-robust", "--grid", "0:4000:250",
-                 "--out", str(out)]) == 0
-    return out
-
-
 def running(status: dict) -> bool:
     return status["state"] == "RUNNING"
 

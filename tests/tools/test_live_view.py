@@ -169,37 +169,28 @@ def test_the_page_s_buttons_start_and_stop_the_service(tmp_path):
     assert service.returncode == 0 and b"stopped by operator" in out, (out.decode(), err.decode())
 
 
-@pytest.fixture(scope="module")
-def coarse_table(tmp_path_factory):
-    """A second table of the paper's design (its rate, I/O chain and model) on a 250 N grid."""
-    out = tmp_path_factory.mktemp("tables") / "coarse.yaml"
-    assert main(["gains", "build", "--design", "integral-lqr", "--no-robust", "--grid", "0:4000:250",
-                 "--out", str(out)]) == 0
-    return out
-
-
 @pytest.mark.skipif(BROWSER is None, reason=NO_BROWSER)
-def test_the_page_s_switch_gains_runs_another_table_and_names_it(tmp_path, coarse_table):
+def test_the_page_s_switch_gains_runs_another_table_and_names_it(tmp_path, other_table):
     """At bias (--hold: ARMED) the page's Switch gains swaps the table; the page's title then names
     the table the service runs, not the one it started with."""
     with _page_of_a_service(tmp_path, "--hold") as (service, browser):
         armed = _page_when(browser, lambda v: v["state"] == "ARMED" and v["connection"] == "live", "ARMED")
         started_with = browser.evaluate("document.getElementById('run-label').textContent")
-        browser.evaluate(f"document.getElementById('gains-table').value = {json.dumps(str(coarse_table))};"
+        browser.evaluate(f"document.getElementById('gains-table').value = {json.dumps(str(other_table))};"
                          "document.getElementById('button-gains').click()")
         swapped = _page_when(browser, lambda v: "gains: done" in v["reply"] or "refused" in v["reply"],
                              "the reply to Switch gains")
         title = ""
         deadline = time.monotonic() + DEADLINE_S
-        while str(coarse_table) not in title and time.monotonic() < deadline:
+        while str(other_table) not in title and time.monotonic() < deadline:
             title = browser.evaluate("document.getElementById('run-label').textContent")
             time.sleep(0.2)
         _stop(service)
     assert armed["fault"].startswith("NONE"), armed
     assert str(paper_table_path()) in started_with, started_with
     assert "gains: done" in swapped["reply"], swapped["reply"]
-    assert title.endswith(f"gain table {coarse_table}"), (
-        f"the page's title after the swap: {title!r}; the service runs {coarse_table}")
+    assert title.endswith(f"gain table {other_table}"), (
+        f"the page's title after the swap: {title!r}; the service runs {other_table}")
 
 
 def test_a_viewer_that_stalls_and_dies_never_holds_up_the_service(tmp_path, short_dir):
