@@ -1,28 +1,38 @@
-"""The robust check: how far a gain table holds every rig of an uncertainty box.
+"""The robust check: the worst rig of an uncertainty box, found by searching it.
 
 A rig of the box differs from the design model in its parameters (any numeric model key,
 e.g. ``beam.youngs_modulus``), its stack force per volt (``actuators.force_constant_n_per_v``), its
-output delay (``io.delay_samples``) and its sample rate (``sample_rate_hz``). For each rig
-(scenario) the check finds the largest load L such that the discrete closed loop (the rig's
-full FE plane, its I/O chain, and exactly the compensator the control step runs, via the
-schedule) is stable at every check load from 0 to L: the table's grid loads and midpoints,
-subdivided to steps of at most ``max_step_n``, and steps of ``fine_step_n`` within
-``fine_band`` of the rig's own critical load. It reports L / own Fx,cr and the pole that
-limits it.
+output delay (``io.delay_samples``) and its sample rate (``sample_rate_hz``), every one of them
+continuous within its range. For a rig, the **instability onset** is the lowest axial load at
+which the discrete closed loop (the rig's full FE plane, its I/O chain, and exactly the
+compensator the control step runs, via the schedule) is unstable; its **onset ratio** is the
+onset divided by the rig's own critical load Fx,cr. A rig stable to the end of the table is
+censored: its ratio (end / Fx,cr) is a lower bound.
 
-Scenarios: each box parameter alone at both ends (the screen), the 2^k corners of the k
-parameters that did the most harm in the screen (the others nominal), and ``random`` draws
-inside the whole box (seeded). The work is spread over processes, one BLAS thread each.
+The check minimises the onset ratio over the whole box:
+
+1. a global search: seeded differential evolution (scipy) from a Latin hypercube, every rig
+   walked up from the table's first load (in steps of ``search_step_n``, four times that below
+   half the rig's own Fx,cr) and the first unstable step bisected to ``resolution_n``;
+2. a local refinement of the best rig: a compass search (each parameter up and down by a step
+   that halves when no neighbour is worse), the neighbours evaluated in parallel;
+3. verification of the ``verify`` worst distinct rigs found: walked from the first load at every
+   grid load and midpoint in steps of at most ``max_step_n`` (``fine_step_n`` within
+   ``fine_band`` of the rig's own Fx,cr), the first unstable step bisected to ``resolution_n``.
+
+Parameters that do no harm alone (damping, stack gain, gauge placement, a delay inside the
+sample) can combine into the worst rig: the search varies all of them together. It is
+deterministic for a seed whatever evaluates the rigs: worker processes here, or a Dask cluster.
 """
 
 from __future__ import annotations
 
-import itertools
 import math
 import os
 import signal
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from multiprocessing import get_context
 from typing import Any
@@ -30,7 +40,6 @@ from typing import Any
 import numpy as np
 
 from beamctl.config.schema import ConfigError, read_yaml
-from beamctl.gains.discrete import pole_summary
 from beamctl.gains.rig import RigPlane
 from beamctl.gains.schedule import GainSchedule
 from beamctl.gains.table import GainTable
@@ -41,6 +50,7 @@ from beamctl.models.params import ModelParameters, parameters_from_dict
 Progress = Callable[[int, int, str], None]
 KINDS = ("factor", "offset", "value")
 SPECIAL_KEYS = ("io.delay_samples", "actuators.force_constant_n_per_v", "sample_rate_hz")
+MODES = ("search", "full")
 
 
 @dataclass(frozen=True)
@@ -55,27 +65,47 @@ class Range:
     def nominal(self) -> float:
         return 1.0 if self.kind == "factor" else 0.0 if self.kind == "offset" else self.low
 
+    def at(self, u: float) -> float:
+        """The value at the fraction ``u`` (0..1) of the range."""
+        return self.low + u * (self.high - self.low)
+
     def to_dict(self) -> dict[str, list[float]]:
         return {self.kind: [self.low, self.high]}
 
 
 @dataclass(frozen=True)
 class Box:
-    """The uncertainty box and how it is sampled."""
+    """The uncertainty box and how the search covers it (see the module docstring)."""
 
     parameters: dict[str, Range]
-    corner_parameters: int | tuple[str, ...] = 5
-    random: int = 24
     seed: int = 1
+    population: int = 40          # rigs per generation of the global search
+    generations: int = 14         # generations after the first
+    refine: int = 300             # rigs the local refinements may evaluate, together
+    starts: int = 3               # local refinements, from the worst distinct rigs of the global part
+    strategy: str = "rand1bin"    # scipy's differential evolution strategy
+    verify: int = 4               # worst distinct rigs walked again at the fine steps
+    search_step_n: float = 200.0
+    resolution_n: float = 1.0
     max_step_n: float = 50.0
     fine_step_n: float = 10.0
     fine_band: float = 0.04
 
+    @property
+    def budget(self) -> int:
+        """Rigs the search evaluates at most (the global part, the refinement, the verification)."""
+        return self.population * (self.generations + 1) + self.refine + self.verify
+
+    def values(self, u: Sequence[float]) -> dict[str, float]:
+        """The rig at the point ``u`` of the unit cube (one coordinate per parameter)."""
+        return {k: r.at(float(x)) for (k, r), x in zip(self.parameters.items(), u, strict=True)}
+
     def to_dict(self) -> dict[str, Any]:
-        corners = (self.corner_parameters if isinstance(self.corner_parameters, int)
-                   else list(self.corner_parameters))
-        return {"parameters": {k: r.to_dict() for k, r in self.parameters.items()}, "corners": corners,
-                "random": self.random, "seed": self.seed, "max_step_N": self.max_step_n,
+        return {"parameters": {k: r.to_dict() for k, r in self.parameters.items()}, "seed": self.seed,
+                "population": self.population, "generations": self.generations, "refine": self.refine,
+                "starts": self.starts, "strategy": self.strategy, "verify": self.verify,
+                "search_step_N": self.search_step_n,
+                "resolution_N": self.resolution_n, "max_step_N": self.max_step_n,
                 "fine_step_N": self.fine_step_n, "fine_band": self.fine_band}
 
 
@@ -114,11 +144,19 @@ def _model_key(params: Mapping[str, Any], key: str) -> bool:
         isinstance(node, list) and all(isinstance(x, (int, float)) for x in node))
 
 
+# box keys -> (default, what is accepted, test); the search's settings
+_INTEGERS = {"seed": (1, 0, 2**32 - 1), "population": (40, 5, 10_000), "generations": (14, 0, 10_000),
+             "refine": (300, 0, 100_000), "starts": (3, 1, 100), "verify": (4, 1, 100)}
+STRATEGIES = ("rand1bin", "best1bin", "randtobest1bin", "currenttobest1bin", "best2bin", "rand2bin")
+_LOADS = {"search_step_N": (200.0, 1.0, 500.0), "resolution_N": (1.0, 0.01, 50.0),
+          "max_step_N": (50.0, 1.0, 50.0), "fine_step_N": (10.0, 0.01, 1e9), "fine_band": (0.04, 0.0, 1.0)}
+
+
 def box_from_dict(data: Any, params: ModelParameters, source: str = "") -> Box:
     """Validate a box mapping (the ``box:`` section of a file)."""
     if not isinstance(data, Mapping):
-        raise ConfigError("box", data, "a mapping with parameters (and corners, random, seed)", source)
-    known = {"parameters", "corners", "random", "seed", "max_step_N", "fine_step_N", "fine_band"}
+        raise ConfigError("box", data, "a mapping with parameters (and the search's settings)", source)
+    known = {"parameters", "strategy", *_INTEGERS, *_LOADS}
     unknown = sorted(set(data) - known)
     if unknown:
         raise ConfigError(f"box.{unknown[0]}", data[unknown[0]], f"one of the known keys {sorted(known)}",
@@ -153,28 +191,27 @@ def box_from_dict(data: Any, params: ModelParameters, source: str = "") -> Box:
         if key == "io.delay_samples" and low < 0:
             raise ConfigError(f"{where}.{kind}", bounds, "delays >= 0 samples", source)
         ranges[str(key)] = Range(kind, low, high)
-    corners = data.get("corners", 5)
-    if isinstance(corners, bool) or not (isinstance(corners, int) and 0 <= corners <= 8 or (
-            isinstance(corners, list) and all(c in ranges for c in corners) and len(corners) <= 8)):
-        raise ConfigError("box.corners", corners, "a number of parameters 0..8 (the most harmful in the "
-                          "screen) or a list of at most 8 keys of box.parameters", source)
-    numbers = {}
-    for key, default, low in (("random", 24, 0), ("seed", 1, 0)):
+    settings: dict[str, Any] = {}
+    for key, (default, low, high) in _INTEGERS.items():
         value = data.get(key, default)
-        if isinstance(value, bool) or not isinstance(value, int) or value < low:
-            raise ConfigError(f"box.{key}", value, f"an integer >= {low}", source)
-        numbers[key] = value
-    steps = {}
-    for key, default in (("max_step_N", 50.0), ("fine_step_N", 10.0), ("fine_band", 0.04)):
+        if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+            raise ConfigError(f"box.{key}", value, f"an integer from {low} to {high}", source)
+        settings[key] = value
+    for key, (default, low, high) in _LOADS.items():
         value = data.get(key, default)
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= (
-                50.0 if key == "max_step_N" else 1e9):
-            raise ConfigError(f"box.{key}", value, "a number > 0" + (" and <= 50 (N)" if key == "max_step_N"
-                                                                       else ""), source)
-        steps[key] = float(value)
-    return Box(parameters=ranges, corner_parameters=corners if isinstance(corners, int) else tuple(corners),
-               random=numbers["random"], seed=numbers["seed"], max_step_n=steps["max_step_N"],
-               fine_step_n=steps["fine_step_N"], fine_band=steps["fine_band"])
+        unit = "" if key == "fine_band" else " (N)"
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not low < value <= high:
+            raise ConfigError(f"box.{key}", value, f"a number > {low:g} and <= {high:g}{unit}", source)
+        settings[key] = float(value)
+    strategy = data.get("strategy", "rand1bin")
+    if strategy not in STRATEGIES:
+        raise ConfigError("box.strategy", strategy, f"one of {', '.join(STRATEGIES)} (scipy's differential "
+                          "evolution)", source)
+    return Box(parameters=ranges, seed=settings["seed"], population=settings["population"],
+               generations=settings["generations"], refine=settings["refine"], starts=settings["starts"],
+               strategy=strategy, verify=settings["verify"], search_step_n=settings["search_step_N"],
+               resolution_n=settings["resolution_N"], max_step_n=settings["max_step_N"],
+               fine_step_n=settings["fine_step_N"], fine_band=settings["fine_band"])
 
 
 def load_box(path: str, params: ModelParameters) -> Box:
@@ -185,35 +222,7 @@ def load_box(path: str, params: ModelParameters) -> Box:
 
 
 # -------------------------------------------------------------------------------------------
-# one scenario
-
-
-@dataclass(frozen=True)
-class Limit:
-    """The least stable pole where the check stopped (or, if it never did, at the end)."""
-
-    load_n: float
-    spectral_radius: float
-    frequency_hz: float
-    min_damping: float
-
-
-@dataclass(frozen=True)
-class ScenarioResult:
-    name: str
-    parameters: dict[str, float]
-    held_load_n: float | None           # None: unstable already at 0 N
-    critical_load_n: float
-    ratio: float
-    limit: Limit
-    points: int
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"name": self.name, "parameters": self.parameters, "held_load_N": self.held_load_n,
-                "critical_load_N": self.critical_load_n, "ratio": self.ratio,
-                "limit": {"load_N": self.limit.load_n, "spectral_radius": self.limit.spectral_radius,
-                          "frequency_hz": self.limit.frequency_hz, "min_damping": self.limit.min_damping},
-                "points": self.points}
+# one rig
 
 
 def _set(node: dict, key: str, rng: Range, value: float) -> None:
@@ -270,8 +279,8 @@ def rig_of(table: GainTable, box: Box, values: Mapping[str, float]) -> Rig:
 
 
 def check_loads(table_loads: np.ndarray, critical_n: float, box: Box) -> np.ndarray:
-    """The loads a scenario is checked at (ascending): grid loads and midpoints, gaps split to
-    at most ``max_step_n``, and ``fine_step_n`` steps within ``fine_band`` of Fx,cr."""
+    """The loads of the full walk (ascending): grid loads and midpoints, gaps split to at most
+    ``max_step_n``, and ``fine_step_n`` steps within ``fine_band`` of Fx,cr."""
     loads = np.asarray(table_loads, dtype=float)
     points = set(loads.tolist()) | set(((loads[:-1] + loads[1:]) / 2).tolist())
     ordered = sorted(points)
@@ -286,39 +295,105 @@ def check_loads(table_loads: np.ndarray, critical_n: float, box: Box) -> np.ndar
     return np.unique(np.round(np.concatenate([full, fine]), 9))
 
 
-def evaluate(table: GainTable, schedule: GainSchedule, box: Box, name: str,
-             values: Mapping[str, float]) -> ScenarioResult:
-    """Walk up the check loads of one scenario until the loop is unstable."""
-    rig = rig_of(table, box, values)
+def search_loads(table_loads: np.ndarray, critical_n: float, step_n: float) -> np.ndarray:
+    """The loads of the search's walk: the table's first load to its last, in steps of 4
+    ``step_n`` below half the rig's own Fx,cr and of ``step_n`` above it."""
+    first, last = float(table_loads[0]), float(table_loads[-1])
+    half = min(max(first, 0.5 * critical_n), last)
+    low = np.arange(first, half, 4 * step_n)
+    count = max(1, math.ceil((last - half) / step_n - 1e-9))
+    return np.concatenate([low, half + (last - half) * np.arange(count + 1) / count])
+
+
+@dataclass(frozen=True)
+class Onset:
+    """Where one rig's closed loop becomes unstable.
+
+    ``onset_n``: the lowest load found unstable (None: stable to the end of the table, a
+    censored rig); ``stable_to_n``: the load below it known stable, within the resolution (None
+    when the first load is already unstable); ``ratio``: onset / own Fx,cr, or, censored, end /
+    Fx,cr (a lower bound); ``pole_hz`` and ``spectral_radius``: the pole of largest magnitude at
+    the onset (censored: the largest over the walk); ``points``: loads analysed."""
+
+    values: dict[str, float]
+    critical_load_n: float
+    onset_n: float | None
+    stable_to_n: float | None
+    ratio: float
+    pole_hz: float
+    spectral_radius: float
+    points: int
+    mode: str = "full"
+
+    @property
+    def censored(self) -> bool:
+        return self.onset_n is None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"rig": dict(self.values), "onset_N": self.onset_n, "stable_to_N": self.stable_to_n,
+                "critical_load_N": self.critical_load_n, "ratio": self.ratio, "censored": self.censored,
+                "pole_hz": self.pole_hz, "spectral_radius": self.spectral_radius, "points": self.points,
+                "walk": self.mode}
+
+
+def _pole(plane: RigPlane, table: GainTable, schedule: GainSchedule, load: float) -> tuple[float, float]:
+    """(|z|, frequency in Hz) of the loop's pole of largest magnitude at ``load``."""
     comp = table.compensator
+    m = plane.loop_matrix(load, schedule.matrices_at(load), comp.h, comp.plane_states[plane.plane],
+                          comp.period_s)
+    poles = np.linalg.eigvals(m)
+    z = poles[int(np.argmax(np.abs(poles)))]
+    return float(abs(z)), abs(float(np.angle(z))) * plane.sample_rate_hz / (2 * math.pi)
+
+
+def find_onset(plane: RigPlane, table: GainTable, schedule: GainSchedule, loads: np.ndarray,
+               resolution_n: float) -> tuple[float | None, float | None, float, float, int]:
+    """Walk ``loads`` up to the first unstable one, bisect the step before it to ``resolution_n``:
+    (onset, stable to, pole Hz, |z|, points) as in ``Onset``."""
+    points = 0
+    previous = None
+    largest = (-1.0, 0.0)
+    for load in loads:
+        radius, hz = _pole(plane, table, schedule, float(load))
+        points += 1
+        if radius >= 1.0:
+            if previous is None:
+                return float(load), None, hz, radius, points
+            a, b = previous, float(load)
+            while b - a > resolution_n:
+                mid = 0.5 * (a + b)
+                r, f = _pole(plane, table, schedule, mid)
+                points += 1
+                if r >= 1.0:
+                    b, radius, hz = mid, r, f
+                else:
+                    a = mid
+            return b, a, hz, radius, points
+        previous = float(load)
+        largest = max(largest, (radius, hz))
+    return None, previous, largest[1], largest[0], points
+
+
+def evaluate(table: GainTable, schedule: GainSchedule, box: Box, values: Mapping[str, float],
+             mode: str = "full") -> Onset:
+    """The onset of one rig (``values``: box key -> factor/offset/value): ``full`` walks the
+    check loads (``check_loads``), ``search`` the coarse ones (``search_loads``)."""
+    rig = rig_of(table, box, values)
     plane = RigPlane(build_model(rig.params), rig.chain, rig.sample_rate_hz, rig.force_gain)
     critical = plane.critical_load_n
-    held = None
-    worst = None
-    loads = check_loads(table.loads_n, critical, box)
-    count = 0
-    for load in loads:
-        m = plane.loop_matrix(load, schedule.matrices_at(load), comp.h, comp.plane_states["y"], comp.period_s)
-        poles = np.linalg.eigvals(m)
-        count += 1
-        radius, damping = pole_summary(poles, rig.sample_rate_hz)
-        z = poles[int(np.argmax(np.abs(poles)))]
-        here = Limit(load_n=float(load), spectral_radius=radius,
-                     frequency_hz=abs(float(np.angle(z))) * rig.sample_rate_hz / (2 * math.pi),
-                     min_damping=damping)
-        if radius >= 1.0:
-            worst = here
-            break
-        held = float(load)
-        if worst is None or radius > worst.spectral_radius:
-            worst = here
-    ratio = (held or 0.0) / critical
-    return ScenarioResult(name=name, parameters={k: float(v) for k, v in values.items()}, held_load_n=held,
-                          critical_load_n=critical, ratio=ratio, limit=worst, points=count)
+    loads = (check_loads(table.loads_n, critical, box) if mode == "full"
+             else search_loads(table.loads_n, critical, box.search_step_n))
+    onset, stable_to, hz, radius, points = find_onset(plane, table, schedule, loads, box.resolution_n)
+    end = onset if onset is not None else float(loads[-1])
+    return Onset(values={k: float(v) for k, v in values.items()}, critical_load_n=critical, onset_n=onset,
+                 stable_to_n=stable_to, ratio=end / critical, pole_hz=hz, spectral_radius=radius,
+                 points=points, mode=mode)
 
 
 # -------------------------------------------------------------------------------------------
-# the scenarios and the parallel run
+# evaluating many rigs: worker processes here, or a Dask cluster
+
+Evaluator = Callable[[list[tuple[dict[str, float], str]], Callable[[Onset], None] | None], list[Onset]]
 
 _WORKER: dict[str, Any] = {}
 
@@ -327,94 +402,310 @@ def _init_worker(table: GainTable, box: Box) -> None:
     # a worker process of this check: Ctrl-C at the terminal is the caller's to handle (the
     # pool is shut down from there), not a traceback from every worker
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:        # one BLAS thread per process: the processes share the cores
-        from threadpoolctl import threadpool_limits
-        _WORKER["limits"] = threadpool_limits(1)
-    except ImportError:     # pragma: no cover - threadpoolctl is a dependency
-        pass
+    _limit_blas()
     _WORKER["table"] = table
     _WORKER["box"] = box
     _WORKER["schedule"] = GainSchedule.from_table(table)
 
 
-def _run(job: tuple[str, dict[str, float]]) -> ScenarioResult:
-    name, values = job
-    return evaluate(_WORKER["table"], _WORKER["schedule"], _WORKER["box"], name, values)
+def _limit_blas() -> None:
+    """One BLAS thread in this process: the processes share the cores."""
+    try:
+        from threadpoolctl import threadpool_limits
+        _WORKER["limits"] = threadpool_limits(1)
+    except ImportError:     # pragma: no cover - threadpoolctl is a dependency
+        pass
+
+
+def _run(job: tuple[dict[str, float], str]) -> Onset:
+    values, mode = job
+    return evaluate(_WORKER["table"], _WORKER["schedule"], _WORKER["box"], values, mode)
+
+
+def evaluate_on_worker(job: tuple[dict[str, float], str], table: GainTable, box: Box) -> Onset:
+    """One rig on a Dask worker (the table and box scattered once); the schedule is built once
+    per worker and table."""
+    key = ("schedule", id(table))
+    if key not in _WORKER:
+        _limit_blas()
+        _WORKER.clear()
+        _WORKER[key] = GainSchedule.from_table(table)
+    return evaluate(table, _WORKER[key], box, *job)
+
+
+@contextmanager
+def local_evaluator(table: GainTable, box: Box, workers: int | None = None) -> Iterator[Evaluator]:
+    """Rigs evaluated in ``workers`` processes (default: the cores, at most 2 here), in the
+    order given; ``workers=1`` evaluates them in this process."""
+    workers = workers or min(2, os.cpu_count() or 1)
+    if workers == 1:
+        schedule = GainSchedule.from_table(table)
+
+        def here(jobs, each=None):
+            out = []
+            for values, mode in jobs:
+                out.append(evaluate(table, schedule, box, values, mode))
+                if each:
+                    each(out[-1])
+            return out
+
+        yield here
+        return
+    with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"), initializer=_init_worker,
+                             initargs=(table, box)) as pool:
+        def spread(jobs, each=None):
+            out = []
+            for r in pool.map(_run, jobs):
+                out.append(r)
+                if each:
+                    each(r)
+            return out
+
+        try:
+            yield spread
+        except BaseException:
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+
+
+def dask_evaluator(client, table: GainTable, box: Box) -> Evaluator:
+    """Rigs evaluated on the Dask cluster of ``client``, in the order given."""
+    shared = client.scatter([table, box], broadcast=True)
+
+    def spread(jobs, each=None):
+        futures = client.map(evaluate_on_worker, jobs, table=shared[0], box=shared[1], pure=False)
+        out = []
+        try:
+            for f in futures:
+                out.append(f.result())
+                if each:
+                    each(out[-1])
+        finally:
+            for f in futures:
+                f.cancel()
+        return out
+
+    return spread
+
+
+# -------------------------------------------------------------------------------------------
+# the search
 
 
 @dataclass
 class RobustResult:
+    """The search's outcome: the verified rigs (worst first) and every rig it evaluated."""
+
     box: Box
-    scenarios: list[ScenarioResult] = field(default_factory=list)
-    corner_parameters: tuple[str, ...] = ()
+    verified: list[Onset] = field(default_factory=list)
+    evaluated: list[Onset] = field(default_factory=list)
+    phases: dict[str, int] = field(default_factory=dict)
+    elapsed_s: float = 0.0
 
     @property
-    def worst(self) -> ScenarioResult:
-        return min(self.scenarios, key=lambda s: s.ratio)
+    def worst(self) -> Onset:
+        return min(self.verified, key=lambda r: r.ratio)
 
     @property
     def worst_ratio(self) -> float:
         return self.worst.ratio
 
-    def to_dict(self) -> dict[str, Any]:
-        return {"robust": {"worst_ratio": self.worst_ratio, "worst_scenario": self.worst.to_dict(),
-                           "corner_parameters": list(self.corner_parameters), "box": self.box.to_dict(),
-                           "scenarios": [s.to_dict() for s in self.scenarios]}}
+    @property
+    def count(self) -> int:
+        return len(self.evaluated) + len(self.verified)
+
+    def to_dict(self, table: GainTable | None = None) -> dict[str, Any]:
+        w = self.worst
+        out = {"worst_ratio": w.ratio, "worst_rig": dict(w.values), "onset_N": w.onset_n,
+               "stable_to_N": w.stable_to_n, "critical_load_N": w.critical_load_n, "censored": w.censored,
+               "pole_hz": w.pole_hz, "spectral_radius": w.spectral_radius, "evaluated": self.count,
+               "phases": dict(self.phases), "elapsed_s": self.elapsed_s,
+               "method": "differential evolution (scipy, seeded, from a Latin hypercube), compass "
+                         "refinement, the worst distinct rigs walked again at the check's fine steps",
+               "verified": [r.to_dict() for r in sorted(self.verified, key=lambda r: r.ratio)],
+               "box": self.box.to_dict()}
+        if table is not None:
+            out["worst_rig_si"] = rig_si(table, self.box, w.values)
+        return {"robust": out}
 
 
-def _random_jobs(box: Box) -> list[tuple[str, dict[str, float]]]:
-    rng = np.random.default_rng(box.seed)
-    jobs = []
+def rig_si(table: GainTable, box: Box, values: Mapping[str, float]) -> dict[str, float]:
+    """The rig's parameters in SI units (model keys), its delay in samples, its sample rate in
+    Hz and its stack force per volt relative to the design's (``force_gain``)."""
+    rig = rig_of(table, box, values)
+    model = rig.params.to_dict()
+    out: dict[str, float] = {}
+    for key in values:
+        if key == "io.delay_samples":
+            out[key] = rig.chain.delay_samples
+        elif key == "sample_rate_hz":
+            out[key] = rig.sample_rate_hz
+        elif key == "actuators.force_constant_n_per_v":
+            out["actuators.force_gain"] = rig.force_gain
+        else:
+            base, _, index = key.partition("[")
+            node: Any = model
+            for part in base.split("."):
+                node = node[part]
+            node = node[int(index[:-1])] if index else node
+            if isinstance(node, list):
+                for i, x in enumerate(node):
+                    out[f"{base}[{i}]"] = float(x)
+            else:
+                out[key] = float(node)
+    return out
+
+
+SHORT_NAMES = {"beam.youngs_modulus": "E", "supports.rotational_stiffness": "kr",
+               "supports.lateral_stiffness": "kl", "supports.actuator_stiffness": "kp",
+               "damping.ratios": "damping", "actuators.force_constant_n_per_v": "stacks",
+               "io.delay_samples": "delay", "sample_rate_hz": "rate",
+               "sensors.strain_gauge_positions[0]": "gauge 1", "sensors.strain_gauge_positions[1]": "gauge 2"}
+
+
+def describe(values: Mapping[str, float], box: Box = DEFAULT_BOX) -> str:
+    """A rig in a line: ``E x1.050, kr x1.200, ..., delay 0.40, gauge 1 -1.00 mm``."""
+    parts = []
+    for key, v in values.items():
+        name = SHORT_NAMES.get(key, key)
+        kind = box.parameters[key].kind if key in box.parameters else "value"
+        if kind == "factor":
+            parts.append(f"{name} x{v:.3f}")
+        elif kind == "offset" and key.startswith("sensors."):
+            parts.append(f"{name} {v * 1e3:+.2f} mm")
+        elif kind == "offset":
+            parts.append(f"{name} {v:+.4g}")
+        else:
+            parts.append(f"{name} {v:.3g}" if key != "io.delay_samples" else f"{name} {v:.2f}")
+    return ", ".join(parts) or "nominal"
+
+
+def search_worst(table: GainTable, box: Box, evaluator: Evaluator,
+                 progress: Progress | None = None) -> RobustResult:
+    """Search ``box`` for the rig with the lowest onset ratio (see the module docstring)."""
+    import time
+
+    from scipy.optimize import differential_evolution
+    from scipy.stats import qmc
+
+    start = time.monotonic()
     keys = list(box.parameters)
-    for i in range(box.random):
-        draw = rng.uniform(size=len(keys))
-        values = {k: box.parameters[k].low + u * (box.parameters[k].high - box.parameters[k].low)
-                  for k, u in zip(keys, draw, strict=True)}
-        jobs.append((f"random {i + 1}", values))
-    return jobs
+    dim = len(keys)
+    result = RobustResult(box=box)
+    total = box.budget
+    units: list[np.ndarray] = []            # the unit-cube point of every evaluated rig
+
+    done = [0, math.inf]                    # rigs evaluated, the lowest ratio so far
+
+    def report(r: Onset) -> None:
+        done[0] += 1
+        done[1] = min(done[1], r.ratio)
+        if progress:
+            progress(done[0], total, f"worst so far {done[1]:.4f}")
+
+    def batch(us: Sequence[np.ndarray]) -> list[float]:
+        jobs = [(box.values(np.clip(u, 0.0, 1.0)), "search") for u in us]
+        out = evaluator(jobs, report)
+        result.evaluated.extend(out)
+        units.extend(np.clip(np.asarray(u, dtype=float), 0.0, 1.0) for u in us)
+        return [r.ratio for r in out]
+
+    # 1. global: differential evolution over the unit cube, population from a Latin hypercube
+    init = qmc.LatinHypercube(d=dim, seed=box.seed).random(box.population)
+    differential_evolution(_never, [(0.0, 1.0)] * dim, maxiter=box.generations, init=init, rng=box.seed,
+                           strategy=box.strategy,
+                           tol=0.0, atol=0.0, polish=False, updating="deferred",
+                           workers=lambda _f, xs: batch(list(xs)))
+    result.phases["global"] = len(result.evaluated)
+
+    # 2. local: a compass search from each of the worst distinct rigs so far
+    starts = _distinct(units, [r.ratio for r in result.evaluated], box.starts, 0.25)
+    share = box.refine // max(1, len(starts))
+    used = 0
+    for i in starts:
+        used += _compass(units[i], result.evaluated[i].ratio, batch, share)
+    result.phases["refine"] = used
+
+    # 3. verify the worst distinct rigs at the fine steps, walked from the first load
+    chosen = _distinct(units, [r.ratio for r in result.evaluated], box.verify, 0.05)
+    total = len(result.evaluated) + len(chosen)
+    verified: list[Onset] = []
+
+    def checked(r: Onset) -> None:
+        verified.append(r)
+        if progress:
+            progress(len(result.evaluated) + len(verified), total, f"verifying, {r.ratio:.4f}")
+
+    result.verified = evaluator([(result.evaluated[i].values, "full") for i in chosen], checked)
+    result.phases["verify"] = len(chosen)
+    result.elapsed_s = time.monotonic() - start
+    if progress:
+        progress(total, total, f"worst {result.worst_ratio:.4f}")
+    return result
+
+
+def _distinct(units: list[np.ndarray], ratios: list[float], count: int, apart: float) -> list[int]:
+    """Indices of the ``count`` lowest ratios whose points lie more than ``apart`` from each other
+    in the max-norm (the worst first)."""
+    chosen: list[int] = []
+    for i in np.argsort(ratios, kind="stable"):
+        if all(np.max(np.abs(units[i] - units[j])) > apart for j in chosen):
+            chosen.append(int(i))
+        if len(chosen) == count:
+            break
+    return chosen
+
+
+def _compass(x: np.ndarray, fx: float, batch: Callable[[list[np.ndarray]], list[float]], budget: int) -> int:
+    """A compass search from ``x`` (value ``fx``): each coordinate up and down by a step (a
+    quarter of the range first), the neighbours evaluated together, and the point that takes
+    every coordinate's better move at once; move to the lowest if it is lower than here,
+    otherwise halve the step, down to 1/256. Returns the rigs evaluated."""
+    step = 0.25
+    used = 0
+    x = x.copy()
+    while step >= 1.0 / 256 and used < budget:
+        trials, moves = [], []
+        for i in range(len(x)):
+            for sign in (1.0, -1.0):
+                t = x.copy()
+                t[i] = min(1.0, max(0.0, t[i] + sign * step))
+                if t[i] != x[i]:
+                    trials.append(t)
+                    moves.append(i)
+        trials = trials[:budget - used]
+        ratios = batch(trials)
+        used += len(trials)
+        better: dict[int, int] = {}
+        for k, (i, r) in enumerate(zip(moves, ratios, strict=False)):
+            if r < fx and (i not in better or r < ratios[better[i]]):
+                better[i] = k
+        if not better:
+            step /= 2
+            continue
+        j = min(better.values(), key=lambda k: ratios[k])
+        x_next, f_next = trials[j], ratios[j]
+        if len(better) > 1 and used < budget:
+            combined = x.copy()
+            for i, k in better.items():
+                combined[i] = trials[k][i]
+            (r,) = batch([combined])
+            used += 1
+            if r < f_next:
+                x_next, f_next = combined, r
+        x, fx = x_next, f_next
+    return used
+
+
+def _never(_u: np.ndarray) -> float:     # pragma: no cover - the search evaluates through its workers
+    raise AssertionError("the search evaluates rigs through its evaluator")
 
 
 def robust_check(table: GainTable, box: Box = DEFAULT_BOX, *, workers: int | None = None,
-                 progress: Progress | None = None) -> RobustResult:
-    """Run the robust check of ``table`` over ``box`` (see the module docstring)."""
-    workers = workers or min(2, os.cpu_count() or 1)
-    keys = list(box.parameters)
-    screen = [("nominal", {})] + [(f"{k} {end}", {k: getattr(box.parameters[k], end)})
-                                   for k in keys for end in ("low", "high")
-                                   if getattr(box.parameters[k], end) != box.parameters[k].nominal()]
-    randoms = _random_jobs(box)
-    n_corners = (2 ** box.corner_parameters if isinstance(box.corner_parameters, int)
-                 else 2 ** len(box.corner_parameters))
-    total = len(screen) + n_corners + len(randoms)
-    result = RobustResult(box=box)
-    done = 0
-
-    def collect(jobs, pool) -> list[ScenarioResult]:
-        nonlocal done
-        out = []
-        for r in pool.map(_run, jobs):
-            out.append(r)
-            done += 1
-            if progress:
-                progress(done, total, f"{r.name[:28]}: {r.ratio:.3f}")
-        return out
-
-    with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"), initializer=_init_worker,
-                             initargs=(table, box)) as pool:
-        screened = collect(screen, pool)
-        result.scenarios.extend(screened)
-        if isinstance(box.corner_parameters, int):
-            harm: dict[str, float] = {}
-            for r in screened[1:]:
-                for k in r.parameters:
-                    harm[k] = min(harm.get(k, math.inf), r.ratio)
-            chosen = tuple(sorted(harm, key=lambda k: harm[k])[:box.corner_parameters])
-        else:
-            chosen = tuple(box.corner_parameters)
-        result.corner_parameters = chosen
-        corners = [(f"corner {i + 1}",
-                     {k: getattr(box.parameters[k], end) for k, end in zip(chosen, ends, strict=True)})
-                   for i, ends in enumerate(itertools.product(("low", "high"), repeat=len(chosen)))]
-        total = len(screen) + len(corners) + len(randoms)
-        result.scenarios.extend(collect(corners + randoms, pool))
-    return result
+                 progress: Progress | None = None, client=None) -> RobustResult:
+    """The robust check of ``table`` over ``box``: the search, on ``workers`` processes here or
+    on the Dask cluster of ``client``."""
+    if client is not None:
+        return search_worst(table, box, dask_evaluator(client, table, box), progress)
+    with local_evaluator(table, box, workers) as evaluator:
+        return search_worst(table, box, evaluator, progress)

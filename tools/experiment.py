@@ -162,6 +162,55 @@ class Deflection:
         return out[0], out[1], out[2]
 
 
+# stacks that do not limit: the controller's belief and the rig's own force per volt both scaled
+# by this (their ratio, the rig's stack gain, kept), so that 150 V gives 4 times the force
+UNLIMITED_STACKS = 4.0
+
+
+def rig_scenario(table: GainTable, table_path: str, rig_si: dict[str, float],
+                 force_constant_n_per_v: float = 3.0, stack_scale: float = UNLIMITED_STACKS,
+                 ramp: dict | None = None) -> dict:
+    """A scenario of ``beamctl experiment`` for a rig of the robust check (``rig_si``: its model
+    keys in SI units, ``io.delay_samples``, ``sample_rate_hz``, ``actuators.force_gain``) run by
+    the table at ``table_path``: the rig's own beam, I/O delay and DAQ rate, and stacks whose
+    force per volt the controller believes ``force_constant_n_per_v`` x ``stack_scale`` while the
+    rig's are that times its stack gain (force does not limit)."""
+    model: dict = {}
+    plant: dict = {"load": dict(ramp or {})}
+    gain = 1.0
+    for key, value in rig_si.items():
+        if key == "io.delay_samples":
+            plant["io"] = {"delay_samples": float(value)}
+        elif key == "sample_rate_hz":
+            plant["sample_rate_hz"] = float(value)
+        elif key == "actuators.force_gain":
+            gain = float(value)
+        else:
+            base, _, index = key.partition("[")
+            *parents, leaf = base.split(".")
+            node = model
+            for part in parents:
+                node = node.setdefault(part, {})
+            if index:
+                i = int(index[:-1])
+                current = node.setdefault(leaf, list(_lookup(table.model_parameters.to_dict(), base)))
+                current[i] = float(value)
+            else:
+                node[leaf] = float(value)
+    plant["model"] = model
+    believed = force_constant_n_per_v * stack_scale
+    return {"model": table.model_parameters.to_dict(), "gains": {"table": str(table_path)}, "plant": plant,
+            "controller": {"actuators": {"force_constant_n_per_v": believed}},
+            "hal": {"sim": {"own_actuators": True, "actuators": {"force_constant_n_per_v": believed * gain}}},
+            "experiment": {"paper_mode": False}}
+
+
+def _lookup(node: dict, dotted: str):
+    for part in dotted.split("."):
+        node = node[part]
+    return node
+
+
 def paper_table(cfg: ServiceConfig) -> GainTable:
     """The experiment's gains: 0..3500 N every 500 N, switched stepwise (built for this run),
     under the rule of every table that runs: refused unless its closed-loop check passed."""

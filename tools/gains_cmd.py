@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import sys
+from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 
@@ -14,7 +15,8 @@ from beamctl.gains.build import build_lqg_table, build_table, closed_loop_checks
 from beamctl.gains.defaults import DESIGNS, default_table_path, paper_table_path
 from beamctl.gains.table import GainTable, changed_file_message, load_table, write_table
 from beamctl.models import build_model
-from beamctl.tools.outputs import check_dir, check_file, replacing
+from beamctl.tools import argtypes
+from beamctl.tools.outputs import check_dir, check_file, replacing, write_text
 from beamctl.tools.progress import ProgressBar
 from beamctl.tools.service import load_model_file
 
@@ -60,16 +62,27 @@ def add_parser(sub) -> None:
     b.set_defaults(run=run_build)
 
     c = gsub.add_parser("check", help="the discrete closed loop at every grid point and midpoint; with "
-                        "--robust, over the uncertainty box")
+                        "--robust, the worst rig of the uncertainty box, searched for")
     c.add_argument("file", nargs="*", help="gain table(s) (default: the shipped default and the paper's "
                    "design, side by side)")
     c.add_argument("--robust", action="store_true",
-                   help="how far each table holds every rig of the uncertainty box (both cores, minutes)")
+                   help="search the uncertainty box for the rig whose loop goes unstable at the lowest "
+                        "fraction of its own critical load (minutes, both cores)")
     c.add_argument("--box", metavar="FILE", help="the uncertainty box (YAML, a box: section; default: "
                    "the README's box B)")
-    c.add_argument("--workers", type=int, metavar="N", help="processes for --robust (default: 2, or 1 "
-                   "on a single core)")
-    c.add_argument("--json", action="store_true", help="print one JSON object")
+    c.add_argument("--seed", type=argtypes.number(low=0, integer=True), metavar="N",
+                   help="the search's seed (default: the box's, 1): the same seed finds the same rigs")
+    c.add_argument("--workers", type=argtypes.number(low=1, integer=True), metavar="N",
+                   help="processes for --robust here (default: 2, or 1 on a single core)")
+    c.add_argument("--scheduler", metavar="ADDRESS",
+                   help="spread --robust over an existing Dask cluster, e.g. tcp://10.0.0.5:8786 "
+                        "(pip install 'beamctl[study]' there and here)")
+    c.add_argument("--worst-rig", metavar="FILE", dest="worst_rig",
+                   help="write the worst rig found as a `beamctl experiment --config` scenario (with one "
+                        "table: its stacks scaled so that their force does not limit)")
+    c.add_argument("--json", action="store_true", help="print one JSON object (progress stays on stderr)")
+    c.epilog = ("exit status 0: every table stable at every check point, as built, and with --robust its "
+                "worst rig held to its own critical load; 1: not so; 2: bad input; 130: Ctrl-C")
     c.set_defaults(run=run_check)
 
     s = gsub.add_parser("show", help="gains versus load")
@@ -118,69 +131,119 @@ def run_build(args: argparse.Namespace) -> int:
     with replacing(out) as temp:      # the service never reads half a table
         write_table(table, temp)
     print(f"wrote {out}{' (forced: unstable points)' if table.forced and not table.all_stable else ''}")
-    if not args.no_robust and table.all_stable:
+    if args.no_robust:
+        print("robust check skipped (--no-robust): how far the table holds a rig that differs from the "
+              f"model is unknown; run `beamctl gains check --robust {out}`")
+    elif table.all_stable:
         from beamctl.gains.robust import DEFAULT_BOX
 
-        result = _robust(table, DEFAULT_BOX, None, quiet=False)
-        w = result.worst
-        print(f"robust check over box B ({len(result.scenarios)} rigs): worst held load / own Fx,cr = "
-              f"{result.worst_ratio:.4f} ({w.name}: {_held(w)} of {w.critical_load_n:.0f} N)")
+        print(f"robust check: searching box B for its worst rig ({DEFAULT_BOX.budget} rigs at most, a few "
+              "minutes on 2 cores; --no-robust skips it)", file=sys.stderr, flush=True)
+        result = _robust(table, DEFAULT_BOX, None, None)
+        print(_robust_line(result))
     return 0
 
 
-def _held(r) -> str:
-    return "nothing" if r.held_load_n is None else f"{r.held_load_n:.0f} N"
-
-
-def _robust(table: GainTable, box, workers: int | None, quiet: bool):
+def _robust(table: GainTable, box, workers: int | None, scheduler: str | None):
+    """The robust check with its progress on stderr, here or on a Dask cluster."""
     from beamctl.gains.robust import robust_check
 
-    bar = None if quiet else ProgressBar("robust check")
-    with bar or contextlib.nullcontext():
-        result = robust_check(table, box, workers=workers, progress=bar)
-        if bar:
+    client = _dask_client(scheduler) if scheduler else None
+    try:
+        with ProgressBar("robust check") as bar:
+            result = robust_check(table, box, workers=workers, progress=bar, client=client)
             bar.close()
+    finally:
+        if client is not None:
+            client.close()
     return result
+
+
+def _dask_client(address: str):
+    try:
+        from distributed import Client
+    except ImportError:
+        raise ConfigError("--scheduler", address, "dask.distributed installed: pip install "
+                          "'beamctl[study]'") from None
+    try:
+        return Client(address, timeout=10)
+    except OSError as exc:
+        raise ConfigError("--scheduler", address,
+                          f"the address of a running Dask scheduler ({exc})") from None
+
+
+def _robust_line(result) -> str:
+    w = result.worst
+    onset = "stable to the end of the table" if w.censored else f"unstable from {w.onset_n:.0f} N"
+    bound = " (censored: a lower bound)" if w.censored else ""
+    return (f"robust check over the box ({result.count} rigs searched in {result.elapsed_s:.0f} s): worst "
+            f"onset / own Fx,cr = {result.worst_ratio:.4f}{bound} ({onset} of its {w.critical_load_n:.0f} N)")
 
 
 def run_check(args: argparse.Namespace) -> int:
     files = args.file or [str(default_table_path()), str(paper_table_path())]
-    if args.workers is not None and args.workers < 1:
-        raise ConfigError("--workers", args.workers, "at least 1 process")
-    if args.box and not args.robust:
-        raise ConfigError("--box", args.box, "--robust as well (the box is what the robust check covers)")
+    for flag, value in (("--box", args.box), ("--seed", args.seed), ("--scheduler", args.scheduler),
+                        ("--worst-rig", args.worst_rig), ("--workers", args.workers)):
+        if value is not None and not args.robust:
+            raise ConfigError(flag, value, "--robust as well (it sets how the robust check runs)")
+    if args.worst_rig and len(files) > 1:
+        raise ConfigError("--worst-rig", args.worst_rig, "one gain table (the scenario runs that table)")
+    if args.scheduler and args.workers:
+        raise ConfigError("--workers", args.workers, "no --scheduler (the cluster has its own workers)")
+    worst_rig = check_file(args.worst_rig, "--worst-rig") if args.worst_rig else None
     tables = [(path, _load(path, "check")) for path in files]
     box = None
     if args.robust:
         from beamctl.gains.robust import DEFAULT_BOX, load_box
 
         box = load_box(args.box, tables[0][1].model_parameters) if args.box else DEFAULT_BOX
+        if args.seed is not None:
+            box = replace(box, seed=args.seed)
     reports = [_check_one(path, table, box, args) for path, table in tables]
+    if worst_rig is not None:
+        _write_worst_rig(worst_rig, *tables[0], reports[0]["robust"])
     if args.json:
         print(json.dumps(reports[0] if len(reports) == 1 else {"tables": reports}, indent=1))
     elif len(reports) > 1:
         _side_by_side(reports)
     ok = all(r["all_stable"] and r["sha256_matches"] for r in reports)
-    return 0 if ok else 1
+    held = all(r["robust"]["worst_ratio"] >= 1.0 for r in reports if "robust" in r)
+    return 0 if ok and held else 1
+
+
+def _write_worst_rig(out, path: str, table: GainTable, robust: dict) -> None:
+    """The worst rig as a scenario of ``beamctl experiment`` (tools/experiment.rig_scenario)."""
+    import yaml
+
+    from beamctl.tools.experiment import UNLIMITED_STACKS, rig_scenario
+
+    scenario = rig_scenario(table, str(Path(path).resolve()), robust["worst_rig_si"])
+    onset = ("stable to the end of the table" if robust["censored"]
+             else f"unstable from {robust['onset_N']:.0f} N")
+    header = (f"# The worst rig the robust check of {path} found (seed {robust['box']['seed']}): onset / "
+              f"own Fx,cr = {robust['worst_ratio']:.4f},\n# {onset} of its own Fx,cr "
+              f"{robust['critical_load_N']:.0f} N (pole at {robust['pole_hz']:.0f} Hz). Its stacks give "
+              f"{UNLIMITED_STACKS:g} times the shipped force per volt,\n# believed and actual alike (the "
+              "rig's stack gain kept), so that force does not limit the run.\n"
+              "# Run: beamctl experiment --config THIS_FILE --no-paper\n")
+    write_text(out, header + yaml.safe_dump(scenario, sort_keys=False))
 
 
 def _check_one(path: str, table: GainTable, box, args: argparse.Namespace) -> dict:
     """Nominal check (and robust check with a box) of one table; printed unless --json."""
     model = build_model(table.model_parameters)
-    bar = None if args.json else ProgressBar(f"gains check {path}")
-    with bar or contextlib.nullcontext():
+    with ProgressBar(f"gains check {path}") as bar:
         checks = closed_loop_checks(model, table, progress=bar)
-        if bar:
-            bar.close()
+        bar.close()
     all_stable = all(c.stable for c in checks)
     report = {
         "file": path, "design": design_summary(table),
         "points": [{"load_N": c.load_n, "spectral_radius": c.spectral_radius, "stable": c.stable,
                     "min_damping": c.min_damping, "gain_load_N": c.gain_load_n} for c in checks],
         "all_stable": all_stable, "sha256_matches": table.intact}
-    result = _robust(table, box, args.workers, quiet=args.json) if box is not None else None
+    result = _robust(table, box, args.workers, args.scheduler) if box is not None else None
     if result is not None:
-        report.update(result.to_dict())
+        report.update(result.to_dict(table))
     if args.json:
         return report
     print(f"gain table {path}: {report['design']}")
@@ -210,18 +273,27 @@ def design_summary(table: GainTable) -> str:
 
 
 def _print_robust(result) -> None:
+    from beamctl.gains.robust import describe
+
     w = result.worst
-    print(f"robust: worst held load / own Fx,cr = {result.worst_ratio:.4f} over {len(result.scenarios)} "
-          f"rigs "
-          f"(corners of {', '.join(result.corner_parameters) or 'none'})")
-    print(f"  worst rig: {w.name}: {', '.join(f'{k} {v:g}' for k, v in w.parameters.items()) or 'nominal'}")
-    print(f"  holds {_held(w)} of its own Fx,cr {w.critical_load_n:.0f} N; "
-          f"unstable at {w.limit.load_n:.0f} N "
-          f"(|z| = {w.limit.spectral_radius:.5f}, {w.limit.frequency_hz:.0f} Hz)")
-    print(f"  {'rig':<36} {'held N':>7} {'own Fx,cr N':>11} {'ratio':>6}")
-    for r in sorted(result.scenarios, key=lambda r: r.ratio)[:8]:
-        held = "-" if r.held_load_n is None else f"{r.held_load_n:.0f}"
-        print(f"  {r.name[:36]:<36} {held:>7} {r.critical_load_n:11.0f} {r.ratio:6.3f}")
+    print(_robust_line(result).replace("robust check over the box", "robust"))
+    phases = result.phases
+    print(f"  search: seed {result.box.seed}, {phases.get('global', 0)} rigs of differential evolution, "
+          f"{phases.get('refine', 0)} of local refinement, {phases.get('verify', 0)} walked again from the "
+          "table's first load at the fine steps")
+    print(f"  worst rig: {describe(w.values)}")
+    if w.censored:
+        print(f"  stable to the end of the table; the least stable pole there |z| = "
+              f"{w.spectral_radius:.5f} at {w.pole_hz:.0f} Hz")
+    else:
+        print(f"  stable to {w.stable_to_n:.1f} N, unstable at {w.onset_n:.1f} N (|z| = "
+              f"{w.spectral_radius:.5f}, {w.pole_hz:.0f} Hz); its own Fx,cr {w.critical_load_n:.1f} N")
+    if result.worst_ratio < 1.0:
+        print("  NOT HELD: this rig of the box goes unstable below its own critical load (exit status 1)")
+    print(f"  {'ratio':>7} {'onset N':>8} {'own Fx,cr N':>11} {'pole Hz':>8}  rig")
+    for r in sorted(result.verified, key=lambda r: r.ratio):
+        onset = "-" if r.censored else f"{r.onset_n:.0f}"
+        print(f"  {r.ratio:7.4f} {onset:>8} {r.critical_load_n:11.0f} {r.pole_hz:8.0f}  {describe(r.values)}")
 
 
 def _side_by_side(reports: list[dict]) -> None:

@@ -610,37 +610,67 @@ def run_over_time(run: RunRecord, part: str = ""):
     return fig
 
 
-def study_figures(rows: Sequence[dict], designs: Sequence[str], out_dir: Path) -> list[Path]:
-    """An uncertainty study's report: held load / own critical load as a histogram and an
-    empirical CDF per design, and the probability of failure versus axial load."""
+_STUDY_FAILURE = {"linear": ("instability onset", "unstable"), "experiment": ("let-go load", "let go")}
+
+
+def _survival_curve(ax, km, color: str, label: str) -> None:
+    """A Kaplan-Meier estimate as the step curve it is, from the lowest value observed to the
+    highest (``end``: flat after the last failure, nothing drawn beyond), censored values as '+'
+    on it."""
+    start = min(km.failure_at[:1].tolist() + km.censored_at[:1].tolist())
+    x = np.concatenate([[start], km.failure_at, [km.end]])
+    y = np.concatenate([[0.0], km.probability, km.probability[-1:] if km.failures else [0.0]])
+    ax.step(x, y, where="post", color=color, label=label)
+    if km.censored_at.size:
+        ax.plot(km.censored_at, km.at(km.censored_at), "+", color=color, ms=9, mew=1.5)
+
+
+def study_figures(rows: Sequence[dict], designs: Sequence[str], out_dir: Path,
+                  kind: str = "linear") -> list[Path]:
+    """An uncertainty study's report: the failures' onset / own critical load as a histogram and
+    the Kaplan-Meier estimate of its distribution per design, and the Kaplan-Meier probability
+    of failure versus axial load. A censored sample (it never failed: a lower bound) is never
+    drawn as a failure: it is counted in the legends and marked '+' on the curves, which end at
+    the largest value observed."""
+    from beamctl.tools.study import survival
+
+    what, failed = _STUDY_FAILURE[kind]
     plt = _pyplot()
-    fig, (ax_h, ax_c) = plt.subplots(1, 2, figsize=(10, 4))
-    fig_p, ax_p = plt.subplots(figsize=(7, 4.5))
-    for design in designs:
-        mine = [r for r in rows if r["design"] == design]
-        ratio = np.array([r["ratio"] for r in mine], dtype=float)
-        ratio = ratio[np.isfinite(ratio)]
-        held = np.sort(np.array([r["held_load_n"] for r in mine], dtype=float))
-        held = held[np.isfinite(held)]
-        label = Path(design).name
-        if len(ratio):
-            ax_h.hist(ratio, bins=max(5, min(50, len(ratio) // 5)), alpha=0.5, label=label)
-            x = np.sort(ratio)
-            ax_c.step(x, np.arange(1, len(x) + 1) / len(x), where="post", label=label)
-        if len(held):
-            ax_p.step(held, np.arange(1, len(held) + 1) / len(mine), where="post", label=label)
-    ax_h.set_xlabel("held load / own Fx,cr")
-    ax_h.set_ylabel("samples")
-    ax_h.set_title("Held load over the study")
-    ax_c.set_xlabel("held load / own Fx,cr")
-    ax_c.set_ylabel("fraction of samples at or below")
-    ax_c.set_title("Empirical CDF")
+    fig, (ax_h, ax_c) = plt.subplots(1, 2, figsize=(11, 4.5))
+    fig_p, ax_p = plt.subplots(figsize=(7.5, 4.8))
+    valid = [r for r in rows if r["design"] in designs and math.isfinite(r["ratio"])]
+    failures = [r["ratio"] for r in valid if not r["censored"]]
+    bins = np.histogram_bin_edges(failures, bins=max(5, min(50, len(failures) // 5))) if failures else 10
+    for i, design in enumerate(designs):
+        mine = [r for r in valid if r["design"] == design]
+        if not mine:
+            continue
+        color, name = f"C{i}", Path(design).name
+        ratio, load = survival(mine, "ratio"), survival(mine, "onset_n")
+        censored = len(ratio.censored_at)
+        at = f" at {load.censored_at[0]:.0f} N" if censored and np.ptp(load.censored_at) == 0 else ""
+        label = f"{name}: {ratio.failures} {failed}, {censored or 'none'} censored"
+        ax_h.hist([r["ratio"] for r in mine if not r["censored"]], bins=bins, color=color, alpha=0.5,
+                  ec="white", label=label + (" (not drawn)" if censored else ""))
+        _survival_curve(ax_c, ratio, color, label + (" (+)" if censored else ""))
+        _survival_curve(ax_p, load, color, label + (f"{at} (+)" if censored else ""))
+    for ax in (ax_c, ax_p):
+        ax.set_ylim(-0.02, 1.02)
     for ax in (ax_h, ax_c):
+        ax.axvline(1.0, color="0.4", lw=0.8, ls="--")
+        ax.set_xlabel(f"{what} / own Fx,cr")
         ax.grid(True, alpha=0.3)
-        ax.legend(fontsize=8)
+        ax.legend(fontsize=8, loc="upper left")
+    ax_h.set_ylabel("samples")
+    ax_h.yaxis.get_major_locator().set_params(integer=True)
+    ax_h.set_title("Failures over the study (censored samples not drawn)", fontsize=10)
+    ax_c.set_ylabel("estimated fraction failed at or below")
+    ax_c.set_title("Kaplan-Meier estimate (+ censored, a lower bound)", fontsize=10)
     fig.tight_layout()
     paths = [save(fig, Path(out_dir) / "study_ratio.png")]
     paths.append(_finish(fig_p, ax_p, Path(out_dir) / "study_failure_probability.png",
-                         xlabel="axial load Fx in N", ylabel="probability the beam is let go below Fx",
-                         title="Probability of failure versus axial load", legend={"fontsize": 8}))
+                         xlabel=f"axial load Fx in N ({what})",
+                         ylabel=f"estimated probability {failed} at or below Fx",
+                         title="Probability of failure versus axial load (Kaplan-Meier, + censored)",
+                         legend={"fontsize": 8, "loc": "upper left"}))
     return paths

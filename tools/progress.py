@@ -1,5 +1,5 @@
 """Progress display for long commands: a bar redrawn in place on a terminal, a line every
-10 % otherwise (logs, CI)."""
+10 % otherwise (logs, CI); both with an estimate of the time left once there is one."""
 
 from __future__ import annotations
 
@@ -22,8 +22,18 @@ class ProgressBar:
         self._start = time.monotonic()
         self._open = False
 
+    def left_s(self, fraction: float) -> float | None:
+        """The time left at ``fraction`` done, from the rate so far (None: too early to say)."""
+        elapsed = time.monotonic() - self._start
+        if fraction < 0.02 or elapsed < 2.0 or fraction >= 1.0:
+            return None
+        return elapsed * (1.0 - fraction) / fraction
+
     def __call__(self, done: int, total: int, label: str = "") -> None:
         fraction = done / total if total else 1.0
+        left = self.left_s(fraction)
+        if left is not None:
+            label = f"{label}, {_duration(left)} left" if label else f"{_duration(left)} left"
         if self.tty:
             now = time.monotonic()
             if now - self._last_draw < 0.1 and done < total:
@@ -31,7 +41,7 @@ class ProgressBar:
             self._last_draw = now
             filled = int(round(self.width * fraction))
             bar = "#" * filled + "-" * (self.width - filled)
-            self.stream.write(f"\r{self.title} [{bar}] {done}/{total} {label:<24}")
+            self.stream.write(f"\r{self.title} [{bar}] {done}/{total} {label:<36}")
             self._open = True
         else:
             decile = int(fraction * 10)
@@ -45,7 +55,7 @@ class ProgressBar:
         """End the display; return the elapsed time in s."""
         elapsed = time.monotonic() - self._start
         if self.tty and self._open:
-            self.stream.write(f"\r{self.title}: done in {elapsed:.1f} s{' ' * (self.width + 30)}\n")
+            self.stream.write(f"\r{self.title}: done in {elapsed:.1f} s{' ' * (self.width + 60)}\n")
             self.stream.flush()
         self._open = False
         return elapsed
@@ -59,3 +69,12 @@ class ProgressBar:
             self.stream.write("\n")
             self.stream.flush()
         self._open = False
+
+
+def _duration(seconds: float) -> str:
+    """``about 40 s``, ``about 3 min``, ``about 1.5 h``."""
+    if seconds < 90:
+        return f"about {max(1, round(seconds))} s"
+    if seconds < 5400:
+        return f"about {round(seconds / 60)} min"
+    return f"about {seconds / 3600:.1f} h"

@@ -263,10 +263,16 @@ def plant_parameters(cfg: ServiceConfig) -> ModelParameters:
         raise ConfigError(f"plant.model.{exc.key}", exc.value, exc.expected, cfg.source) from None
 
 
+# the simulated DAQ's clock may be off the table's rate by this much (the robust check's box: 1 %)
+PLANT_RATE_TOLERANCE = 0.05
+
+
 def plant_settings(cfg: ServiceConfig, table: GainTable,
                    overrides: dict[str, Any] | None = None) -> PlantConfig:
-    """The plant section (with ``overrides``) validated at the gain table's rate (a plant sampled
-    at any other rate is refused). The simulated rig has the I/O chain the table's design
+    """The plant section (with ``overrides``) validated at the gain table's rate: by default the
+    plant is sampled at that rate; ``plant.sample_rate_hz`` within PLANT_RATE_TOLERANCE of it is
+    a rig whose DAQ clock is off (the plant advances by its own period a sample, the controller
+    computes with the table's). The simulated rig has the I/O chain the table's design
     declares (its delay, its anti-alias filter) except where ``plant.io`` says otherwise."""
     sample_rate_hz = table.design.sample_rate_hz
     data = {"sample_rate_hz": sample_rate_hz, **cfg.plant, **(overrides or {})}
@@ -274,9 +280,10 @@ def plant_settings(cfg: ServiceConfig, table: GainTable,
     data["io"] = {**table.design.io.to_dict(), **io} if isinstance(io, dict) else (
         table.design.io.to_dict() if io is None else io)
     pc = plant_config(data, cfg.source, "plant.")
-    if pc.sample_rate_hz != sample_rate_hz:
+    if abs(pc.sample_rate_hz / sample_rate_hz - 1.0) > PLANT_RATE_TOLERANCE:
         raise ConfigError("plant.sample_rate_hz", pc.sample_rate_hz,
-                          f"the gain table's sample rate {sample_rate_hz:g} Hz", cfg.source)
+                          f"the gain table's sample rate {sample_rate_hz:g} Hz, or within "
+                          f"{PLANT_RATE_TOLERANCE:.0%} of it (a DAQ whose clock is off)", cfg.source)
     return pc
 
 

@@ -14,7 +14,7 @@ A study file holds one ``study:`` section::
         model.supports.rotational_stiffness: {law: normal, mean: 192.4, std: 10.0}
         io.delay_samples: {law: truncated-normal, mean: 0.5, std: 0.2, low: 0.0, high: 1.0}
         actuators.force_constant_n_per_v: {law: uniform, low: 2.4, high: 3.6}
-      linear: {max_step_n: 50, fine_step_n: 10, fine_band: 0.04}
+      linear: {max_step_n: 50, fine_step_n: 10, fine_band: 0.04, resolution_n: 1.0}
 
 Keys: ``model.<key>`` any numeric model parameter (a list element as ``model.damping.ratios[0]``;
 a whole list, ``model.damping.ratios``, takes a factor on every element), the rig's own;
@@ -23,11 +23,18 @@ stacks (the controller keeps believing ``controller_force_constant_n_per_v``, de
 3.0); ``sample_rate_hz`` the rig's true rate; for ``kind: experiment`` also ``plant.<key>`` (bow,
 eccentricity, noise, load ramp of the simulated rig).
 
-Kinds: ``linear`` finds the largest load up to which the discrete closed loop of the sample's rig
-with the design is stable (gains/robust.py's check, one scenario); ``experiment`` runs the
-interpolated controller on the sample's simulated rig along the shipped scenario's load ramp
-(tools/experiment.py) and takes the load at which the beam was let go (the deflection limit, a
-fault, or the ramp's end).
+Kinds: ``linear`` finds the instability onset, the lowest load at which the discrete closed loop
+of the sample's rig with the design is unstable (gains/robust.py's ``evaluate``, the full walk from
+the table's first load, the first unstable step bisected to ``resolution_n``); ``experiment`` runs
+the interpolated controller on the sample's simulated rig along the shipped scenario's load ramp
+(tools/experiment.py) and takes the load at which the beam was let go (its deflection passed the
+limit, after a fault or not).
+
+A sample whose rig never failed (linear: stable to the end of the table; experiment: the ramp
+ended with the beam held) is **censored**: its ``onset_n`` (the table's or the ramp's end) and
+``ratio`` are lower bounds, not failures. The summary and the figures treat them as right-censored
+data (Kaplan-Meier): they are never counted or drawn as failures, and a quantile beyond the last
+failure is undetermined, not the censoring value.
 
 Every sample's values are drawn on the client from the seed before anything runs, so the rows do
 not depend on how many workers there are or in which order they answer. Each sample is a plain
@@ -52,7 +59,7 @@ KINDS = ("linear", "experiment")
 LAWS = ("uniform", "normal", "truncated-normal")
 SAMPLINGS = ("random", "latin-hypercube")
 SPECIAL_KEYS = ("io.delay_samples", "actuators.force_constant_n_per_v", "sample_rate_hz")
-LINEAR_DEFAULTS = {"max_step_n": 50.0, "fine_step_n": 10.0, "fine_band": 0.04}
+LINEAR_DEFAULTS = {"max_step_n": 50.0, "fine_step_n": 10.0, "fine_band": 0.04, "resolution_n": 1.0}
 MAX_SAMPLES = 1_000_000
 
 
@@ -294,15 +301,16 @@ def design_texts(study: Study) -> dict[str, str]:
 
 
 def run_task(task: Task, texts: Mapping[str, str] | None = None) -> dict[str, Any]:
-    """The row of one sample: its values, the held load, the rig's own critical load, their
-    ratio and why it ended. An error of the sample itself (parameters that give no valid model)
-    is a row too, with the reason. ``texts``: the designs' tables (``design_texts``)."""
+    """The row of one sample: its values, the onset (or, censored, the end of the table or the
+    ramp), the rig's own critical load, their ratio, whether it is censored and why it ended. An
+    error of the sample itself (parameters that give no valid model) is a row too, with the
+    reason. ``texts``: the designs' tables (``design_texts``)."""
     row: dict[str, Any] = {"sample": task.sample, "design": task.design, **task.values}
     table = _table(task.design, texts)          # once per worker, from the client's copy if sent
     try:
         result = _linear(task, table) if task.kind == "linear" else _experiment(task, table)
     except ConfigError as exc:
-        result = {"held_load_n": math.nan, "critical_load_n": math.nan, "ratio": math.nan,
+        result = {"onset_n": math.nan, "critical_load_n": math.nan, "ratio": math.nan, "censored": False,
                   "reason": f"invalid rig: {exc}"}
     row.update(result)
     return row
@@ -330,12 +338,15 @@ def _linear(task: Task, table) -> dict[str, Any]:
             params[key] = Range("value", v, v)
             values[key] = v
     box = Box(parameters=params, max_step_n=task.linear["max_step_n"], fine_step_n=task.linear["fine_step_n"],
-              fine_band=task.linear["fine_band"])
-    r = evaluate(table, GainSchedule.from_table(table), box, f"sample {task.sample}", values)
-    held = math.nan if r.held_load_n is None else r.held_load_n
-    return {"held_load_n": held, "critical_load_n": r.critical_load_n, "ratio": r.ratio,
-            "reason": f"unstable at {r.limit.load_n:.0f} N ({r.limit.frequency_hz:.0f} Hz)"
-            if r.limit.spectral_radius >= 1 else "stable to the end of the table"}
+              fine_band=task.linear["fine_band"], resolution_n=task.linear["resolution_n"])
+    r = evaluate(table, GainSchedule.from_table(table), box, values, mode="full")
+    if r.censored:                              # stable to its last load, the table's end
+        end = r.stable_to_n
+        return {"onset_n": end, "critical_load_n": r.critical_load_n, "ratio": r.ratio, "censored": True,
+                "reason": f"stable to the end of the table ({end:.0f} N)"}
+    first = "" if r.stable_to_n is not None else " (the table's first load)"
+    return {"onset_n": r.onset_n, "critical_load_n": r.critical_load_n, "ratio": r.ratio, "censored": False,
+            "reason": f"unstable from {r.onset_n:.0f} N{first} ({r.pole_hz:.0f} Hz)"}
 
 
 def _lookup(node: Any, key: str) -> Any:
@@ -387,35 +398,127 @@ def _experiment(task: Task, table) -> dict[str, Any]:
     cfg, settings = experiment_config(scenario, f"sample {task.sample}")
     trace = run_mode("interpolate", cfg, settings, table)
     critical = trace.plant_critical_load_n
-    held = trace.load_n[-1] if trace.load_n else math.nan
-    return {"held_load_n": float(held), "critical_load_n": float(critical), "ratio": float(held) / critical,
-            "reason": trace.fault or trace.end}
+    end = trace.load_n[-1] if trace.load_n else math.nan
+    let_go = any(d > settings["deflection_limit"] for d in trace.deflection_m)    # the run's end (simkernel)
+    return {"onset_n": float(end), "critical_load_n": float(critical), "ratio": float(end) / critical,
+            "censored": not let_go, "reason": trace.fault or trace.end}
 
 
 # -- the report -----------------------------------------------------------------------------------
-def summarise(rows: list[Mapping[str, Any]], keys: list[str], wall_s: float) -> dict[str, Any]:
-    """``summary.json``: per design the samples, the worst ratio and its quantiles, and the
-    sensitivity ranking (Spearman rank correlation of each parameter with the held load)."""
+QUANTILES = (1, 5, 50, 95)         # percent, of the onset ratio
+
+
+@dataclass(frozen=True)
+class Survival:
+    """The Kaplan-Meier estimate of the failure probability of right-censored values (a
+    censored value is a lower bound: the sample had not failed there).
+
+    ``failure_at``: the distinct failure values, ascending; ``probability``: the estimated
+    probability of failure at or below each of them (1 - the product-limit survival); the
+    estimate is flat between them and ends at ``end``, the largest value observed;
+    ``censored_at``: the censored values, ascending; ``failures``: the failed samples."""
+
+    failure_at: np.ndarray
+    probability: np.ndarray
+    censored_at: np.ndarray
+    end: float
+    failures: int
+
+    def at(self, x: Any) -> np.ndarray:
+        """The estimated probability of failure at or below ``x`` (valid up to ``end``)."""
+        i = np.searchsorted(self.failure_at, np.asarray(x, dtype=float), side="right")
+        return np.concatenate([[0.0], self.probability])[i]
+
+    def quantile(self, p: float) -> float | None:
+        """The smallest value at which the estimated failure probability reaches ``p`` (0 < p <= 1);
+        None when it never does within the data (beyond the last failure, censored samples
+        left): the quantile then lies above ``end``."""
+        reached = np.flatnonzero(self.probability >= p - 1e-12)
+        return float(self.failure_at[reached[0]]) if reached.size else None
+
+
+def kaplan_meier(values: Any, censored: Any) -> Survival:
+    """The Kaplan-Meier estimate of ``values`` (finite, at least one), ``censored`` marking the
+    lower bounds (scipy.stats.ecdf; a sample censored at a failure value is at risk there)."""
+    from scipy.stats import CensoredData, ecdf
+
+    values = np.asarray(values, dtype=float)
+    censored = np.asarray(censored, dtype=bool)
+    if not values.size or not np.isfinite(values).all():
+        raise ValueError(f"Kaplan-Meier needs finite values, at least one: {values}")
+    failed = values[~censored]
+    failure_at = np.unique(failed)
+    probability = np.zeros(0)
+    if failure_at.size:
+        cdf = ecdf(CensoredData(uncensored=failed, right=values[censored])).cdf
+        probability = np.asarray(cdf.evaluate(failure_at), dtype=float)
+    return Survival(failure_at=failure_at, probability=probability, censored_at=np.sort(values[censored]),
+                    end=float(values.max()), failures=int(failed.size))
+
+
+def survival(rows: list[Mapping[str, Any]], column: str = "ratio") -> Survival | None:
+    """The Kaplan-Meier estimate of ``column`` (``ratio`` or ``onset_n``) over the valid ``rows``
+    (of one design), their ``censored`` flags marking lower bounds; None without a valid row."""
+    valid = [r for r in rows if math.isfinite(r[column])]
+    if not valid:
+        return None
+    return kaplan_meier([r[column] for r in valid], [r["censored"] for r in valid])
+
+
+def _sensitivity(rows: list[Mapping[str, Any]], keys: list[str]) -> tuple[dict[str, float], str]:
+    """Spearman's rank correlation of each parameter with the onset load over the valid rows,
+    strongest first, and what it was computed on. A censored sample enters at its lower bound
+    (the table's or the ramp's end): its rank is right when every censored value lies above
+    every onset, as when all end at the same table's end (ties among them only)."""
     from scipy.stats import spearmanr
 
+    valid = [r for r in rows if math.isfinite(r["onset_n"])]
+    onset = np.array([r["onset_n"] for r in valid], dtype=float)
+    censored = np.array([r["censored"] for r in valid], dtype=bool)
+    out = {}
+    for k in keys:
+        x = np.array([r[k] for r in valid], dtype=float)
+        if len(valid) > 2 and np.ptp(x) > 0 and np.ptp(onset) > 0:
+            out[k] = float(spearmanr(x, onset).statistic)
+    basis = f"Spearman rank correlation with onset_n over {len(valid)} valid samples"
+    if censored.any():
+        exact = not (~censored).any() or onset[censored].min() > onset[~censored].max()
+        basis += (f", the {int(censored.sum())} censored ones at their lower bound ("
+                  + ("above every onset: ranks exact, tied among them)" if exact else
+                     "some below an onset: their ranks are uncertain)"))
+    return dict(sorted(out.items(), key=lambda kv: -abs(kv[1]))), basis
+
+
+def summarise(rows: list[Mapping[str, Any]], keys: list[str], wall_s: float) -> dict[str, Any]:
+    """``summary.json``: per design the samples, failures and censored ones, the worst ratio (of a
+    failure), the ratio's Kaplan-Meier quantiles (null where the data end before them:
+    ``ratio_quantiles_beyond`` then gives the ratio they lie above) and the sensitivity ranking."""
     out: dict[str, Any] = {"samples": len({r["sample"] for r in rows}), "wall_s": wall_s, "designs": {}}
-    worst = math.inf
+    worst: list[float] = []
+    bounds: list[float] = []
     for design in sorted({r["design"] for r in rows}):
         mine = sorted((r for r in rows if r["design"] == design), key=lambda r: r["sample"])
-        ratio = np.array([r["ratio"] for r in mine], dtype=float)
-        good = np.isfinite(ratio)
-        held = np.array([r["held_load_n"] for r in mine], dtype=float)
-        sensitivity = {}
-        for k in keys:
-            x = np.array([r[k] for r in mine], dtype=float)
-            ok = good & np.isfinite(held)
-            if ok.sum() > 2 and np.ptp(x[ok]) > 0 and np.ptp(held[ok]) > 0:
-                sensitivity[k] = float(spearmanr(x[ok], held[ok]).statistic)
-        ranked = dict(sorted(sensitivity.items(), key=lambda kv: -abs(kv[1])))
-        q = {f"{p:g}": float(np.quantile(ratio[good], p / 100)) for p in (1, 5, 50, 95)} if good.any() else {}
-        w = float(ratio[good].min()) if good.any() else math.nan
-        worst = min(worst, w)
-        out["designs"][design] = {"samples": len(mine), "invalid": int((~good).sum()), "worst_ratio": w,
-                                  "ratio_quantiles": q, "sensitivity": ranked}
-    out["worst_ratio"] = worst if math.isfinite(worst) else None
+        km = survival(mine)
+        valid = [r for r in mine if math.isfinite(r["ratio"])]
+        failed = [r["ratio"] for r in valid if not r["censored"]]
+        censored = [r["ratio"] for r in valid if r["censored"]]
+        d: dict[str, Any] = {"samples": len(mine), "invalid": len(mine) - len(valid), "failures": len(failed),
+                             "censored": len(censored), "worst_ratio": min(failed) if failed else None}
+        if failed:
+            worst.append(min(failed))
+        if censored:
+            d["censored_from_ratio"] = min(censored)
+            bounds.append(min(censored))
+            if not failed:
+                d["worst_ratio_at_least"] = min(censored)
+        quantiles = {f"{p:g}": km.quantile(p / 100) for p in QUANTILES} if km is not None else {}
+        d["ratio_quantiles"] = quantiles
+        beyond = {p: km.end for p, q in quantiles.items() if q is None}
+        if beyond:
+            d["ratio_quantiles_beyond"] = beyond
+        d["sensitivity"], d["sensitivity_basis"] = _sensitivity(mine, keys)
+        out["designs"][design] = d
+    out["worst_ratio"] = min(worst) if worst else None
+    if not worst and bounds:
+        out["worst_ratio_at_least"] = min(bounds)
     return out

@@ -9,7 +9,6 @@ import argparse
 import csv
 import io
 import json
-import math
 import time
 from pathlib import Path
 
@@ -21,14 +20,14 @@ from beamctl.tools.study import Study, Task, design_texts, load_study, run_task,
 
 ROWS = "samples.csv"
 STUDY = "study.json"
-FIXED_COLUMNS = ("held_load_n", "critical_load_n", "ratio", "reason", "seed")
+FIXED_COLUMNS = ("onset_n", "critical_load_n", "ratio", "censored", "reason", "seed")
 
 
 def add_parser(sub) -> None:
     p = sub.add_parser("study", help="uncertainty study: many scattered rigs against the designs, on Dask",
                        description="Draw rigs from the study file's parameter laws, run each against each "
-                                   "design (linear: stable-to load; experiment: the load ramp) on a Dask "
-                                   "cluster, write one row per sample as it arrives and a report.")
+                                   "design (linear: the instability onset; experiment: the load ramp) on a "
+                                   "Dask cluster, write one row per sample as it arrives and a report.")
     p.add_argument("--config", metavar="STUDY.yaml", required=True, help="the study file (a study: section)")
     p.add_argument("--out", metavar="DIR", required=True,
                    help="the study's folder: samples.csv, study.json, summary.json, figures; a folder "
@@ -58,9 +57,9 @@ def _read_rows(path: Path, study: Study) -> list[dict]:
                           "columns): give another folder")
     rows = []
     for r in reader:
-        typed: dict = {"sample": int(r["sample"]), "design": r["design"], "reason": r["reason"],
-                       "seed": int(r["seed"])}
-        for k in (*study.parameters, "held_load_n", "critical_load_n", "ratio"):
+        typed: dict = {"sample": int(r["sample"]), "design": r["design"], "censored": r["censored"] == "true",
+                       "reason": r["reason"], "seed": int(r["seed"])}
+        for k in (*study.parameters, "onset_n", "critical_load_n", "ratio"):
             typed[k] = float(r[k])
         rows.append(typed)
     return rows
@@ -71,7 +70,12 @@ def _write_rows(path: Path, study: Study, rows: list[dict]) -> None:
     with replacing(path) as temp, open(temp, "w", newline="", encoding="utf-8") as f:
         writer = csv.DictWriter(f, fieldnames=_columns(study))
         writer.writeheader()
-        writer.writerows(rows)
+        writer.writerows(map(_csv_row, rows))
+
+
+def _csv_row(row: dict) -> dict:
+    """A row as written: ``censored`` as true or false."""
+    return {**row, "censored": "true" if row["censored"] else "false"}
 
 
 def prepare(study: Study, out: Path) -> list[dict]:
@@ -112,15 +116,14 @@ def run_study(study: Study, out: Path, client, progress=None) -> tuple[list[dict
             writer = csv.DictWriter(f, fieldnames=columns)
             for future in as_completed(futures):
                 row = {**future.result(), "seed": study.seed}
-                writer.writerow(row)
+                writer.writerow(_csv_row(row))
                 f.flush()
                 rows.append(row)
                 new += 1
                 if progress is not None:
                     elapsed = time.monotonic() - start
                     rate = new / elapsed if elapsed > 0 else 0.0
-                    left = (total - len(rows)) / rate if rate > 0 else math.inf
-                    progress(len(rows), total, f"{rate:.2f}/s, {left:.0f} s left")
+                    progress(len(rows), total, f"{rate:.2f}/s")
     finally:
         for future in futures:
             future.cancel()
@@ -166,7 +169,7 @@ def run(args: argparse.Namespace) -> int:
     summary.update(resumed=counts["resumed"], run=counts["run"], kind=study.kind)
     from beamctl.tools import plots
 
-    figures = plots.study_figures(rows, study.designs, out)
+    figures = plots.study_figures(rows, study.designs, out, study.kind)
     write_text(out / "summary.json", json.dumps(summary, indent=1))
     if args.json:
         print(json.dumps(summary, indent=1))
@@ -174,9 +177,23 @@ def run(args: argparse.Namespace) -> int:
     print(f"{summary['samples']} samples x {len(study.designs)} design(s), {study.kind}: "
           f"{counts['run']} run now, {counts['resumed']} from before, {counts['wall_s']:.1f} s")
     for design, d in summary["designs"].items():
-        q = d["ratio_quantiles"]
-        print(f"  {design}: worst held load / own Fx,cr {d['worst_ratio']:.4f}, "
-              f"5 % {q.get('5', math.nan):.4f}, median {q.get('50', math.nan):.4f}; most sensitive: "
-              f"{', '.join(f'{k} {v:+.2f}' for k, v in list(d['sensitivity'].items())[:3]) or '-'}")
+        print(f"  {design}: {_design_line(d)}")
     print(f"report: {out}/ ({', '.join(p.name for p in figures)}, {ROWS}, summary.json)")
     return 0
+
+
+def _design_line(d: dict) -> str:
+    """A design's summary in one line: the worst failure, the Kaplan-Meier quantiles, how many
+    samples were censored, the most sensitive parameters."""
+    def ratio(x: float | None) -> str:
+        return "undetermined" if x is None else f"{x:.4f}"
+
+    q = d["ratio_quantiles"]
+    worst = (f"worst onset / own Fx,cr {d['worst_ratio']:.4f}" if d["worst_ratio"] is not None
+             else f"no failure (every ratio at least {d['worst_ratio_at_least']:.4f})" if d["censored"]
+             else "no valid sample")
+    censored = (f"{d['censored']} of {d['samples']} censored (never failed: ratios from "
+                f"{d['censored_from_ratio']:.4f} are lower bounds)" if d["censored"] else "none censored")
+    sensitive = ", ".join(f"{k} {v:+.2f}" for k, v in list(d["sensitivity"].items())[:3]) or "-"
+    return (f"{worst}, 5 % {ratio(q.get('5'))}, median {ratio(q.get('50'))} (Kaplan-Meier); {censored}; "
+            f"most sensitive: {sensitive}")

@@ -1,5 +1,5 @@
-"""``beamctl study`` on Dask: the laws, the same rows whatever runs them, a resumed study, and a
-worker lost mid-study."""
+"""``beamctl study`` on Dask: the laws, the same rows whatever runs them, a resumed study, a
+worker lost mid-study, and censored samples (never failed) kept apart from failures."""
 
 import csv
 import json
@@ -16,7 +16,7 @@ import yaml
 
 from beamctl.config.schema import ConfigError
 from beamctl.tools.cli import main
-from beamctl.tools.study import draw, study_from_dict
+from beamctl.tools.study import draw, study_from_dict, summarise, survival
 
 distributed = pytest.importorskip("distributed")
 
@@ -28,7 +28,7 @@ STUDY = {"study": {
         "model.supports.rotational_stiffness": {"law": "normal", "mean": 192.4, "std": 15.0},
         "io.delay_samples": {"law": "truncated-normal", "mean": 0.5, "std": 0.2, "low": 0.0, "high": 1.0},
         "actuators.force_constant_n_per_v": {"law": "uniform", "low": 2.4, "high": 3.6}},
-    "linear": {"max_step_n": 200, "fine_step_n": 40}}}
+    "linear": {"max_step_n": 200, "fine_step_n": 40, "resolution_n": 5.0}}}
 
 
 def _write(tmp_path: Path, data: dict, name: str = "study.yaml") -> str:
@@ -68,6 +68,7 @@ def test_the_laws_stay_within_their_bounds_and_the_seed_fixes_the_draw():
     ({"samples": 0}, "study.samples"),
     ({"kind": "nonlinear"}, "study.kind"),
     ({"designs": ["no-such-table.yaml"]}, "study.designs"),
+    ({"linear": {"resolution_n": 0}}, "study.linear.resolution_n"),
 ])
 def test_a_bad_study_file_is_refused_naming_the_key(change, key):
     with pytest.raises(ConfigError) as info:
@@ -85,18 +86,27 @@ def embedded(tmp_path_factory):
 
 
 def test_the_study_writes_one_row_per_sample_a_summary_and_figures(embedded):
+    """Each row: the onset (unstable from there, within the table) or, censored, the table's end
+    4000 N; the worst ratio is a failure's."""
     rows = _rows(embedded)
     assert [int(r["sample"]) for r in rows] == list(range(6))
     for r in rows:
-        held, critical = float(r["held_load_n"]), float(r["critical_load_n"])
+        onset, critical = float(r["onset_n"]), float(r["critical_load_n"])
         assert 2500 < critical < 3500, "the rig's own critical load, E and kr scattered"
-        assert float(r["ratio"]) == pytest.approx(held / critical)
+        assert float(r["ratio"]) == pytest.approx(onset / critical)
+        assert r["censored"] in ("true", "false"), f"censored is written true or false: {r}"
+        if r["censored"] == "true":
+            assert onset == 4000.0 and r["reason"] == "stable to the end of the table (4000 N)", r
+        else:
+            assert onset < 4000.0 and r["reason"].startswith(f"unstable from {onset:.0f} N"), r
+    failed = [float(r["ratio"]) for r in rows if r["censored"] == "false"]
     summary = json.loads((embedded / "summary.json").read_text())
-    assert summary["samples"] == 6 and summary["worst_ratio"] == pytest.approx(
-        min(float(r["ratio"]) for r in rows))
     design = next(iter(summary["designs"].values()))
+    assert summary["samples"] == 6 and design["censored"] == 6 - len(failed)
+    assert summary["worst_ratio"] == (pytest.approx(min(failed)) if failed else None), (
+        "the worst ratio is the lowest of a failure, never a censored sample's lower bound")
     assert list(design["sensitivity"])[0] == "model.beam.youngs_modulus", (
-        "the beam's stiffness moves the held load most")
+        f"the beam's stiffness moves the onset most: {design['sensitivity']}")
     for name in ("study_ratio.png", "study_failure_probability.png"):
         assert (embedded / name).read_bytes()[:4] == b"\x89PNG"
 
@@ -209,11 +219,18 @@ def test_an_experiment_sample_runs_the_load_ramp_on_its_own_rig():
     row = run_task(tasks(study)[0])
     assert row["critical_load_n"] == pytest.approx(3194.0, rel=0.02), "Table 1's beam, E within 1.3 %"
     assert 1.0 < row["ratio"] < 1.1, f"held past its own Fx,cr until the stacks ran out: {row}"
-    assert row["reason"].startswith("deflection passed 1.5 mm")
+    assert row["reason"].startswith("deflection passed 1.5 mm") and row["censored"] is False, row
+    short = study_from_dict({"study": {**study.to_dict(), "experiment": {"plant": {"load": {
+        "start": 1500.0, "end": 2500.0, "rate": 400.0, "hold": 0.2}}}}})
+    row = run_task(tasks(short)[0])
+    assert row["censored"] is True and row["onset_n"] == pytest.approx(2500.0, abs=1.0), (
+        f"a ramp that ends below Fx,cr with the beam held is censored at its end: {row}")
+    assert row["reason"].startswith("ramp ended at 2500 N"), row
     bad = study_from_dict({"study": {"kind": "experiment", "samples": 1, "seed": 1, "parameters": {
         "model.damping.ratios[0]": {"law": "uniform", "low": 0.5, "high": 0.6}}}})
     row = run_task(tasks(bad)[0])
     assert np.isnan(row["ratio"]) and row["reason"].startswith("invalid rig: damping.ratios")
+    assert row["censored"] is False, "an invalid rig is no observation, censored or failed"
 
 
 def test_a_whole_list_key_scales_every_element():
@@ -254,3 +271,91 @@ def test_a_drawn_list_element_keeps_the_design_s_other_elements():
     assert design["damping"]["ratios"] == [0.0225, 0.005]
     _set_model_value(design, "damping.ratios", 2.0)
     assert design["damping"]["ratios"] == [0.045, 0.01], "a whole list is scaled"
+
+
+def _linear_row(design: str, youngs_modulus: float) -> dict:
+    """The row of a linear sample of ``design`` on Table 1's beam with its E set."""
+    from beamctl.tools.study import run_task, tasks
+
+    e = {"law": "uniform", "low": youngs_modulus, "high": youngs_modulus * (1 + 1e-9)}
+    study = study_from_dict({"study": {"kind": "linear", "samples": 1, "seed": 1, "designs": [design],
+                                       "linear": STUDY["study"]["linear"],
+                                       "parameters": {"model.beam.youngs_modulus": e}}})
+    return run_task(tasks(study)[0])
+
+
+def test_a_linear_sample_unstable_before_the_end_of_the_table_has_its_onset():
+    """The paper's design loses a beam 5 % softer at about 3000 N, below the rig's own Fx,cr of
+    3057 N, and holds the nominal beam to the end of its table, 4000 N (README, "Known limits")."""
+    from beamctl.gains.defaults import default_table_path
+
+    paper = str(Path(default_table_path()).with_name("paper.yaml"))
+    soft = _linear_row(paper, 0.95 * 75.8e9)
+    assert soft["censored"] is False, f"unstable within the table, not censored: {soft}"
+    assert 2950.0 < soft["onset_n"] < soft["critical_load_n"] < 3100.0, (
+        f"the paper's design loses the softer beam near 3000 N, below its own Fx,cr: {soft}")
+    assert soft["reason"].startswith(f"unstable from {soft['onset_n']:.0f} N"), soft
+    nominal = _linear_row(paper, 75.8e9)
+    assert nominal["censored"] is True and nominal["onset_n"] == 4000.0, (
+        f"the nominal beam is stable to the end of the paper's table: {nominal}")
+    assert nominal["ratio"] == pytest.approx(4000.0 / nominal["critical_load_n"]), "a lower bound"
+    assert nominal["reason"] == "stable to the end of the table (4000 N)"
+
+
+def _hand_rows(design: str, onsets_n: list[float], censored: list[bool]) -> list[dict]:
+    """Rows of rigs of Fx,cr 3200 N with these onsets (censored: the end, a lower bound)."""
+    return [{"sample": i, "design": design, "model.beam.youngs_modulus": 75.8e9 + i * 1e8,
+             "onset_n": x, "critical_load_n": 3200.0, "ratio": x / 3200.0, "censored": c,
+             "reason": "", "seed": 1} for i, (x, c) in enumerate(zip(onsets_n, censored, strict=True))]
+
+
+def test_kaplan_meier_quantiles_of_censored_rows_agree_with_a_hand_calculation():
+    """Eight rows, four censored (c). The product-limit estimate by hand, at risk n and failing d
+    at each failure, F = 1 - S:
+
+    ratio  0.95  1.00c  1.05  1.10  1.15c  1.20  1.25c  1.25c
+    n, d   8, 1         6, 1  5, 1         3, 1
+    S      7/8          7/8 5/6 = 35/48   35/48 4/5 = 28/48   28/48 2/3 = 7/18
+    F      1/8          13/48             20/48               11/18
+
+    so the 1 % and 5 % quantiles are 0.95, the median 1.20 (F first reaches 1/2 there; counting
+    the censored as failures would give 1.10, dropping them 1.05), and the 95 % quantile is
+    undetermined: F ends at 11/18 at the largest ratio observed, 1.25."""
+    onsets_n = [3040.0, 3200.0, 3360.0, 3520.0, 3680.0, 3840.0, 4000.0, 4000.0]     # the ratios x 3200 N
+    censored = [False, True, False, False, True, False, True, True]
+    rows = _hand_rows("a.yaml", onsets_n, censored)
+    km = survival(rows)
+    np.testing.assert_allclose(km.probability, [1 / 8, 13 / 48, 20 / 48, 11 / 18], rtol=1e-12,
+                               err_msg="the Kaplan-Meier failure probability at 0.95, 1.05, 1.10, 1.20")
+    d = summarise(rows, ["model.beam.youngs_modulus"], 0.0)["designs"]["a.yaml"]
+    assert d["ratio_quantiles"] == {"1": 0.95, "5": 0.95, "50": 1.20, "95": None}, (
+        f"Kaplan-Meier quantiles, the 95 % one beyond the data: {d['ratio_quantiles']}")
+    assert d["ratio_quantiles_beyond"] == {"95": 1.25}, "the undetermined quantile lies above 1.25"
+    assert (d["failures"], d["censored"], d["censored_from_ratio"], d["worst_ratio"]) == (4, 4, 1.00, 0.95)
+    assert "4 censored ones at their lower bound" in d["sensitivity_basis"]
+
+
+def test_a_design_whose_samples_all_held_has_no_worst_ratio_only_a_lower_bound():
+    d = summarise(_hand_rows("held.yaml", [4000.0, 4000.0, 4000.0], [True, True, True]), [], 0.0)
+    assert d["worst_ratio"] is None and d["worst_ratio_at_least"] == 1.25, (
+        "no sample failed: no worst ratio, the lowest censored ratio as its lower bound")
+    design = d["designs"]["held.yaml"]
+    assert design["worst_ratio"] is None and design["worst_ratio_at_least"] == 1.25
+    assert all(q is None for q in design["ratio_quantiles"].values()), design["ratio_quantiles"]
+
+
+def test_a_censored_row_is_never_a_failure_of_the_failure_probability(tmp_path):
+    """Three rigs unstable from 3400, 3600 and 3800 N and two stable to the table's end, 4000 N:
+    the probability of failure rises at the three onsets only (1/5, 2/5, 3/5) and stays at 3/5 up
+    to 4000 N, where the estimate ends: no step at 4000 N. The figures draw this estimate."""
+    rows = _hand_rows("t.yaml", [3400.0, 3600.0, 3800.0, 4000.0, 4000.0], [False, False, False, True, True])
+    km = survival(rows, "onset_n")
+    np.testing.assert_allclose(km.failure_at, [3400.0, 3600.0, 3800.0],
+                               err_msg="only the onsets are failures, never the censored 4000 N")
+    np.testing.assert_allclose(km.at([3399.0, 3400.0, 3700.0, 3999.0, 4000.0]), [0.0, 0.2, 0.4, 0.6, 0.6],
+                               err_msg="the estimate is flat from 3800 N to 4000 N")
+    assert km.end == 4000.0 and km.censored_at.tolist() == [4000.0, 4000.0]
+    from beamctl.tools import plots
+
+    paths = plots.study_figures(rows, ["t.yaml"], tmp_path)
+    assert [p.read_bytes()[:4] for p in paths] == [b"\x89PNG"] * 2
