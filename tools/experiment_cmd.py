@@ -64,6 +64,9 @@ def summary_table(summary: dict) -> str:
     widths = [max(len(r[i]) for r in rows) for i in range(5)]
     text = "\n".join("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)) for r in rows)
     head = [f"critical load Fx,cr = {summary['critical_load_N']:.0f} N"]
+    own = summary.get("plant_critical_load_N")
+    if own is not None and abs(own - summary["critical_load_N"]) > 0.5:
+        head[0] += f" (the controller's model); the simulated rig's own: {own:.0f} N"
     if "io_chain" in summary:
         head.append(f"rig I/O chain: {summary['io_chain']['description']}")
     for label, key in (("interpolated", "controlled"), ("paper 500 N", "paper_switching")):

@@ -1,9 +1,12 @@
 """``beamctl`` in a process of its own, for what only a real process shows: signals, pipes."""
 
+import json
+import os
 import signal
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 # Ctrl-C as at a terminal. A process started from a background job of a non-interactive shell
@@ -38,3 +41,41 @@ def interrupt_when(process: subprocess.Popen, marker: bytes, timeout_s: float = 
     finally:
         watchdog.cancel()
     return process.returncode, (err + rest).decode()
+
+
+class DaskCluster:
+    """A Dask scheduler and two workers, each a process of its own on 127.0.0.1 (`dask scheduler`,
+    `dask worker --no-nanny`: a killed worker stays dead)."""
+
+    def __init__(self, folder: Path) -> None:
+        dask = str(Path(sys.executable).parent / "dask")
+        self.file = folder / "scheduler.json"
+        common = ["--no-dashboard"]
+        self.scheduler = subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", "0",
+                                           "--scheduler-file", str(self.file), *common],
+                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        deadline = time.monotonic() + 60
+        while not self.file.exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        self.address = json.loads(self.file.read_text())["address"]
+        worker = [dask, "worker", "--scheduler-file", str(self.file), "--nthreads", "1", "--no-nanny",
+                  "--host", "127.0.0.1", *common]
+        self.workers = [subprocess.Popen(worker,
+                                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                         env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
+                        for _ in range(2)]
+        import distributed
+
+        with distributed.Client(self.address, timeout=30) as client:
+            client.wait_for_workers(2, timeout=60)
+
+    def close(self) -> None:
+        for p in self.workers:
+            p.kill()
+        self.scheduler.send_signal(signal.SIGINT)
+        for p in (*self.workers, self.scheduler):
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()

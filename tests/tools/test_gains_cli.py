@@ -142,6 +142,27 @@ def test_ctrl_c_ends_the_robust_check_with_130_and_no_traceback(tmp_path):
     assert "Traceback" not in err, err[-2000:]
 
 
+def test_a_dask_cluster_finds_the_worst_rig_the_processes_here_find(robust_run, tmp_path):
+    """The search spread over a Dask scheduler and two workers (processes on 127.0.0.1) is the
+    same search: the same seed evaluates the same rigs and finds the same worst one."""
+    pytest.importorskip("distributed")
+    from beamctl.gains.defaults import paper_table_path
+
+    from .processes import DaskCluster, beamctl
+
+    _, here, _, where = robust_run
+    cluster = DaskCluster(tmp_path)
+    try:
+        process = beamctl("gains", "check", str(paper_table_path()), "--robust", "--box",
+                          str(where / "box.yaml"), "--json", "--scheduler", cluster.address, cwd=tmp_path)
+        out, err = process.communicate(timeout=600)
+    finally:
+        cluster.close()
+    there = json.loads(out)["robust"]
+    assert there["worst_rig"] == here["robust"]["worst_rig"], err.decode()[-2000:]
+    assert there["onset_N"] == here["robust"]["onset_N"] and there["evaluated"] == here["robust"]["evaluated"]
+
+
 @pytest.mark.parametrize("flags", [["--seed", "3"], ["--box", "b.yaml"], ["--scheduler", "tcp://x:1"],
                                    ["--worst-rig", "w.yaml"], ["--workers", "2"]])
 def test_a_robust_flag_without_robust_is_refused(flags, capsys):

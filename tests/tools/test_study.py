@@ -4,10 +4,7 @@ worker lost mid-study, and censored samples (never failed) kept apart from failu
 import csv
 import json
 import signal
-import subprocess
-import sys
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +14,8 @@ import yaml
 from beamctl.config.schema import ConfigError
 from beamctl.tools.cli import main
 from beamctl.tools.study import draw, study_from_dict, summarise, survival
+
+from .processes import DaskCluster
 
 distributed = pytest.importorskip("distributed")
 
@@ -131,45 +130,9 @@ def test_a_folder_of_another_study_is_refused(embedded, tmp_path, capsys):
     assert "another study" in capsys.readouterr().err
 
 
-class _Cluster:
-    """A Dask scheduler and two workers, each a process of its own on 127.0.0.1 (`dask scheduler`,
-    `dask worker --no-nanny`: a killed worker stays dead)."""
-
-    def __init__(self, folder: Path) -> None:
-        dask = str(Path(sys.executable).parent / "dask")
-        self.file = folder / "scheduler.json"
-        common = ["--no-dashboard"]
-        self.scheduler = subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", "0",
-                                           "--scheduler-file", str(self.file), *common],
-                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        deadline = time.monotonic() + 60
-        while not self.file.exists() and time.monotonic() < deadline:
-            time.sleep(0.1)
-        self.address = json.loads(self.file.read_text())["address"]
-        worker = [dask, "worker", "--scheduler-file", str(self.file), "--nthreads", "1", "--no-nanny",
-                  "--host", "127.0.0.1", *common]
-        self.workers = [subprocess.Popen(worker,
-                                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                         env={**__import__("os").environ, "OPENBLAS_NUM_THREADS": "1"})
-                        for _ in range(2)]
-        with distributed.Client(self.address, timeout=30) as client:
-            client.wait_for_workers(2, timeout=60)
-
-    def close(self) -> None:
-        for p in self.workers:
-            p.kill()
-        self.scheduler.send_signal(signal.SIGINT)
-        for p in (*self.workers, self.scheduler):
-            try:
-                p.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
-
-
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory):
-    c = _Cluster(tmp_path_factory.mktemp("cluster"))
+    c = DaskCluster(tmp_path_factory.mktemp("cluster"))
     yield c
     c.close()
 
@@ -183,7 +146,7 @@ def test_an_existing_cluster_gives_the_rows_of_the_embedded_one(cluster, embedde
 
 def test_a_worker_killed_mid_study_loses_no_sample(tmp_path):
     """The rows of a worker that died are computed again elsewhere: every sample once."""
-    local = _Cluster(tmp_path)
+    local = DaskCluster(tmp_path)
     try:
         from beamctl.tools.study import study_from_dict as parse
         from beamctl.tools.study_cmd import run_study
