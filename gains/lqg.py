@@ -20,6 +20,15 @@ compensator (gains.compensator): with p the predicted state,
 
 so A = Phi (I - M Cs), B = Phi M, E = Gamma, C = Kx (I - M Cs), D = Kx M, Ki = Kxi, H.
 
+With a strain FIR pre-filter (``strain_fir`` = (b0 .. b_nf), nf >= 1) the estimator sees
+yf_k = b0 y_k + b1 y_k-1 + ... instead of y_k: the design model gets the past strains
+w = [y_k-1 .. y_k-nf] as states (yf = Cf [s; w]) and the compensator keeps the raw past strains
+r = [y_k-1 .. y_k-nf] (x = [p; r], p the prediction of [s; w]), so with F = [b1 I .. b_nf I]:
+
+    yf = b0 y + F r;  s_hat = p + M (yf - Cf p);  p <- Phi s_hat + Gamma u_applied;  r <- [y, r..]
+
+The LQR ignores w (it does not act on the plant); the integral action keeps the raw y.
+
 Scaling: scipy's discrete Riccati solvers fail on this model in SI modal units; the design is
 solved with displacements scaled to 1e-6 modal units, velocities to 1e-6 times each mode's
 angular frequency, integrals to 1e-9 and forces in N, then transformed back.
@@ -61,6 +70,17 @@ class LqgSettings:
     estimator_mode1_load_offset_n: the Kalman filter's (and the compensator's prediction) model
         of mode 1 alone sees the grid load plus this offset, a softer mode 1 than the LQR's; the
         higher modes keep the grid load (softening them instead destabilises mode 5 on stiff rigs).
+    estimator_mode1_offset_schedule: the estimator's mode-1 load offset as a function of the
+        grid load, (load, offset) points, linear between them and held beyond the ends; ()
+        means the constant estimator_mode1_load_offset_n at every load.
+    q_velocity_high: LQR weights on the velocities of modes 3, 4, ... (() none): active damping
+        of mode 3 keeps it stable across the box's output delays when the loop gain is high.
+    strain_fir: coefficients (b0, b1, ...) of a digital FIR pre-filter on the strains the
+        estimator sees, yf_k = b0 y_k + b1 y_k-1 + ... ((1.0,): none). (1, 2, 1)/4 has a double
+        zero at the Nyquist frequency: it gain-stabilises mode 5 (2.5-2.7 kHz) for one sample
+        of lag at low frequencies. The past strains are compensator states and states of the
+        estimator's design model (the Kalman filter sees the filtered strains); the integral
+        action keeps the raw strains.
     """
 
     n_modes: int = 7
@@ -74,9 +94,22 @@ class LqgSettings:
     strain_noise: float = 0.2e-6
     youngs_modulus_factor: float = 1.0
     estimator_mode1_load_offset_n: float = 0.0
+    estimator_mode1_offset_schedule: tuple[tuple[float, float], ...] = ()
+    q_velocity_high: tuple[float, ...] = ()
+    strain_fir: tuple[float, ...] = (1.0,)
+
+    def at_load(self, axial_load_n: float) -> LqgSettings:
+        """The settings of the design at one grid load (the scheduled estimator offset)."""
+        if not self.estimator_mode1_offset_schedule:
+            return self
+        points = np.asarray(self.estimator_mode1_offset_schedule, dtype=float)
+        offset = float(np.interp(axial_load_n, points[:, 0], points[:, 1]))
+        return replace(self, estimator_mode1_load_offset_n=offset)
 
     def to_dict(self) -> dict:
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+        def plain(v):
+            return [plain(x) for x in v] if isinstance(v, (tuple, list)) else v
+        return {k: plain(v) for k, v in asdict(self).items()}
 
 
 @dataclass(frozen=True)
@@ -183,9 +216,39 @@ def _scales(pm: PlaneModel, n_states: int, n_modal: int) -> np.ndarray:
     return s
 
 
+def _with_fir(sm: SampledDesignModel, fir) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The sampled model with the strain FIR's past strains w_j = y_k-j (j = 1..len(fir)-1)
+    after its states: (phi, gamma, cf, noise_in) with yf_k = cf [s_k; w_k]."""
+    n = sm.phi.shape[0]
+    nf = len(fir) - 1
+    na = n + 2 * nf
+    phi = np.zeros((na, na))
+    phi[:n, :n] = sm.phi
+    gamma = np.zeros((na, 2))
+    gamma[:n] = sm.gamma
+    cf = np.zeros((2, na))
+    cf[:, :n] = fir[0] * sm.cs
+    if nf:
+        phi[n:n + 2, :n] = sm.cs
+        for j in range(1, nf):
+            phi[n + 2 * j:n + 2 * j + 2, n + 2 * (j - 1):n + 2 * j] = np.eye(2)
+        for j in range(1, nf + 1):
+            cf[:, n + 2 * (j - 1):n + 2 * j] = fir[j] * np.eye(2)
+    noise_in = np.zeros((na, 2))
+    noise_in[:n] = sm.noise_in
+    return phi, gamma, cf, noise_in
+
+
 def plane_design(pm: PlaneModel, axial_load_n: float, period_s: float, chain: IOChain, h: np.ndarray,
                  settings: LqgSettings):
-    """Compensator matrices (A, B, E, C, D, Ki) of one plane at one load."""
+    """Compensator matrices (A, B, E, C, D, Ki) of one plane at one load.
+
+    With the strain FIR (nf = len(strain_fir) - 1 > 0) the compensator state is
+    [p (the prediction of [s; w]), r (the raw past strains y_k-1 .. y_k-nf)]:
+    yf = b0 y + F r, s_hat = p + M (yf - Cf p), u = -Kx s_hat - Kxi xi,
+    p <- Phi s_hat + Gamma u_applied, r <- [y, r_1 .. r_nf-1]."""
+    fir = tuple(float(b) for b in settings.strain_fir)
+    nf = len(fir) - 1
     sm = sampled_model(pm, axial_load_n, period_s, chain)
     phi, gamma, cs = sm.phi, sm.gamma, sm.cs
     n = phi.shape[0]
@@ -201,6 +264,8 @@ def plane_design(pm: PlaneModel, axial_load_n: float, period_s: float, chain: IO
     q[0:2] = settings.q_displacement
     q[m:m + 2] = settings.q_velocity
     q[n:n + 2] = settings.q_integral
+    for i, weight in enumerate(settings.q_velocity_high[:max(m - 2, 0)]):
+        q[m + 2 + i] = weight
     # cost per sample = T x (continuous cost), the same for Q and R: their ratio is the paper's
     scale = np.concatenate([_scales(pm, n, sm.n_modal), np.full(2, INTEGRAL_SCALE)])
     sp = big_phi / scale[:, None] * scale[None, :]
@@ -210,28 +275,49 @@ def plane_design(pm: PlaneModel, axial_load_n: float, period_s: float, chain: IO
     p = sla.solve_discrete_are(sp, sg, sq, r)
     k_scaled = np.linalg.solve(r + sg.T @ p @ sg, sg.T @ p @ sp)
     k = k_scaled / scale[None, :]
-    kx, kxi = k[:, :n], k[:, n:]
-    # Kalman filter on s (the buffer is known exactly: no noise there)
+    kxi = k[:, n:]
+    # the past strains of the FIR do not act on the plant: no feedback from them
+    kx = np.zeros((2, n + 2 * nf))
+    kx[:, :n] = k[:, :n]
+    # Kalman filter on [s; w] (the buffer is known exactly: no noise there)
     if settings.estimator_mode1_load_offset_n != 0.0:
         k_el = pm.k_elastic.copy()
         k_el[0, 0] -= settings.estimator_mode1_load_offset_n * pm.k_geometric[0, 0]
         sm = sampled_model(replace(pm, k_elastic=k_el), axial_load_n, period_s, chain)
-        phi, gamma, cs = sm.phi, sm.gamma, sm.cs
-    sc = _scales(pm, n, sm.n_modal)
-    w = settings.force_noise_n**2 * sm.noise_in @ sm.noise_in.T
+    phi, gamma, cf, noise_in = _with_fir(sm, fir)
+    sc = np.concatenate([_scales(pm, n, sm.n_modal), np.full(2 * nf, FILTER_SCALE)])
+    na = phi.shape[0]
+    w = settings.force_noise_n**2 * noise_in @ noise_in.T
     if settings.high_mode_noise > 0 and m > 2:
         for i in range(2, m):
             w[m + i, m + i] += (settings.high_mode_noise * period_s) ** 2
     v = settings.strain_noise**2 * np.eye(2)
     sphi = phi / sc[:, None] * sc[None, :]
-    scs = cs * sc[None, :]
+    scs = cf * sc[None, :]
     sw = w / sc[:, None] / sc[None, :]
-    sw = 0.5 * (sw + sw.T) + 1e-30 * np.eye(n)
+    sw = 0.5 * (sw + sw.T) + 1e-30 * np.eye(na)
     pk = sla.solve_discrete_are(sphi.T, scs.T, sw, v)
     mk_scaled = pk @ scs.T @ np.linalg.inv(scs @ pk @ scs.T + v)
     mk = mk_scaled * sc[:, None]
-    i_mc = np.eye(n) - mk @ cs
-    return (phi @ i_mc, phi @ mk, gamma, kx @ i_mc, kx @ mk, kxi)
+    i_mc = np.eye(na) - mk @ cf
+    if nf == 0:
+        return (phi @ i_mc, phi @ mk, gamma, kx @ i_mc, kx @ mk, kxi)
+    b0 = fir[0]
+    f = np.hstack([fir[j] * np.eye(2) for j in range(1, nf + 1)])      # [2 x 2 nf]
+    nr = 2 * nf
+    a = np.zeros((na + nr, na + nr))
+    a[:na, :na] = phi @ i_mc
+    a[:na, na:] = phi @ mk @ f
+    for j in range(1, nf):
+        a[na + 2 * j:na + 2 * j + 2, na + 2 * (j - 1):na + 2 * j] = np.eye(2)
+    b = np.zeros((na + nr, 2))
+    b[:na] = b0 * phi @ mk
+    b[na:na + 2] = np.eye(2)
+    e = np.zeros((na + nr, 2))
+    e[:na] = gamma
+    c = np.hstack([kx @ i_mc, kx @ mk @ f])
+    d = b0 * kx @ mk
+    return (a, b, e, c, d, kxi)
 
 
 def design(model: FEModel, loads_n, sample_rate_hz: float, chain: IOChain, h: np.ndarray,
@@ -250,8 +336,8 @@ def design(model: FEModel, loads_n, sample_rate_hz: float, chain: IOChain, h: np
     per_plane = {}
     for p in ("y", "z"):
         io = list(PLANE_CHANNELS[p])
-        per_plane[p] = [plane_design(planes[p], load, period, chain, h[np.ix_(io, io)], settings)
-                        for load in loads]
+        per_plane[p] = [plane_design(planes[p], load, period, chain, h[np.ix_(io, io)],
+                                     settings.at_load(load)) for load in loads]
         if progress:
             progress(p)
     ny = per_plane["y"][0][0].shape[0]
@@ -277,5 +363,10 @@ def design(model: FEModel, loads_n, sample_rate_hz: float, chain: IOChain, h: np
         io = list(PLANE_CHANNELS[p])
         s0 = states[p][0]
         start[np.ix_([s0, s0 + 1], io)] = h[np.ix_(io, io)]
+        # the FIR's past strains (the plane's last 2 nf states) and their predictions (the 2 nf
+        # states before them) start at the strains
+        for j in range(2 * (len(settings.strain_fir) - 1)):
+            first = states[p][len(states[p]) - 2 * (j + 1)]
+            start[np.ix_([first, first + 1], io)] = np.eye(2)
     return Compensator(h=np.array(h, dtype=float), start=start, period_s=period, plane_states=states,
                        **mats)
