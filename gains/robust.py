@@ -627,7 +627,7 @@ def search_worst(table: GainTable, box: Box, evaluator: Evaluator,
     result.phases["refine"] = used
 
     # 3. verify the worst distinct rigs at the fine steps, walked from the first load
-    chosen = _distinct(units, [r.ratio for r in result.evaluated], box.verify, 0.05)
+    chosen = _distinct(units, [r.ratio for r in result.evaluated], box.verify, 0.25)
     total = len(result.evaluated) + len(chosen)
     verified: list[Onset] = []
 
