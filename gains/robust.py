@@ -50,7 +50,7 @@ from beamctl.models.params import ModelParameters, parameters_from_dict
 Progress = Callable[[int, int, str], None]
 KINDS = ("factor", "offset", "value")
 SPECIAL_KEYS = ("io.delay_samples", "actuators.force_constant_n_per_v", "sample_rate_hz")
-MODES = ("search", "full")
+MODES = ("search", "full", "margin")
 
 
 @dataclass(frozen=True)
@@ -81,8 +81,9 @@ class Box:
     seed: int = 1
     population: int = 40          # rigs per generation of the global search
     generations: int = 14         # generations after the first
-    refine: int = 300             # rigs the local refinements may evaluate, together
-    starts: int = 3               # local refinements, from the worst distinct rigs of the global part
+    margin: int = 800             # rigs whose growth rates the climbs may evaluate (one load each)
+    refine: int = 400             # rigs the local refinements may evaluate, together
+    starts: int = 4               # local refinements at most: one per way of failing (BAND_NAMES)
     strategy: str = "rand1bin"    # scipy's differential evolution strategy
     verify: int = 4               # worst distinct rigs walked again at the fine steps
     search_step_n: float = 200.0
@@ -94,7 +95,8 @@ class Box:
     @property
     def budget(self) -> int:
         """Rigs the search evaluates at most (the global part, the refinement, the verification)."""
-        return self.population * (self.generations + 1) + self.refine + self.verify
+        return (self.population * (self.generations + 1) + self.margin + len(BAND_NAMES) + self.refine
+                + self.verify)
 
     def values(self, u: Sequence[float]) -> dict[str, float]:
         """The rig at the point ``u`` of the unit cube (one coordinate per parameter)."""
@@ -102,7 +104,8 @@ class Box:
 
     def to_dict(self) -> dict[str, Any]:
         return {"parameters": {k: r.to_dict() for k, r in self.parameters.items()}, "seed": self.seed,
-                "population": self.population, "generations": self.generations, "refine": self.refine,
+                "population": self.population, "generations": self.generations, "margin": self.margin,
+                "refine": self.refine,
                 "starts": self.starts, "strategy": self.strategy, "verify": self.verify,
                 "search_step_N": self.search_step_n,
                 "resolution_N": self.resolution_n, "max_step_N": self.max_step_n,
@@ -144,9 +147,10 @@ def _model_key(params: Mapping[str, Any], key: str) -> bool:
         isinstance(node, list) and all(isinstance(x, (int, float)) for x in node))
 
 
-# box keys -> (default, what is accepted, test); the search's settings
+# the search's settings in a box file: key -> (default, lowest, highest)
 _INTEGERS = {"seed": (1, 0, 2**32 - 1), "population": (40, 5, 10_000), "generations": (14, 0, 10_000),
-             "refine": (300, 0, 100_000), "starts": (3, 1, 100), "verify": (4, 1, 100)}
+             "margin": (800, 0, 100_000), "refine": (400, 0, 100_000), "starts": (4, 1, 100),
+             "verify": (4, 1, 100)}
 STRATEGIES = ("rand1bin", "best1bin", "randtobest1bin", "currenttobest1bin", "best2bin", "rand2bin")
 _LOADS = {"search_step_N": (200.0, 1.0, 500.0), "resolution_N": (1.0, 0.01, 50.0),
           "max_step_N": (50.0, 1.0, 50.0), "fine_step_N": (10.0, 0.01, 1e9), "fine_band": (0.04, 0.0, 1.0)}
@@ -208,7 +212,8 @@ def box_from_dict(data: Any, params: ModelParameters, source: str = "") -> Box:
         raise ConfigError("box.strategy", strategy, f"one of {', '.join(STRATEGIES)} (scipy's differential "
                           "evolution)", source)
     return Box(parameters=ranges, seed=settings["seed"], population=settings["population"],
-               generations=settings["generations"], refine=settings["refine"], starts=settings["starts"],
+               generations=settings["generations"], margin=settings["margin"], refine=settings["refine"],
+               starts=settings["starts"],
                strategy=strategy, verify=settings["verify"], search_step_n=settings["search_step_N"],
                resolution_n=settings["resolution_N"], max_step_n=settings["max_step_N"],
                fine_step_n=settings["fine_step_N"], fine_band=settings["fine_band"])
@@ -305,6 +310,13 @@ def search_loads(table_loads: np.ndarray, critical_n: float, step_n: float) -> n
     return np.concatenate([low, half + (last - half) * np.arange(count + 1) / count])
 
 
+# The ways a loop fails, told apart by the frequency of its unstable pole (Hz): the slow mode 1
+# (below 30 Hz), the closed-loop modes 1 and 2 (30-300 Hz), mode 3 and high modes folded by the
+# sampling (300-1300 Hz), mode 4, mode 5 and mode 6 folded (above 1300 Hz).
+BAND_EDGES_HZ = (30.0, 300.0, 1300.0)
+BAND_NAMES = ("below 30 Hz", "30-300 Hz", "300-1300 Hz", "above 1300 Hz")
+
+
 @dataclass(frozen=True)
 class Onset:
     """Where one rig's closed loop becomes unstable.
@@ -313,7 +325,10 @@ class Onset:
     censored rig); ``stable_to_n``: the load below it known stable, within the resolution (None
     when the first load is already unstable); ``ratio``: onset / own Fx,cr, or, censored, end /
     Fx,cr (a lower bound); ``pole_hz`` and ``spectral_radius``: the pole of largest magnitude at
-    the onset (censored: the largest over the walk); ``points``: loads analysed."""
+    the onset (censored: the largest over the walk); ``points``: loads analysed. The search's walk
+    also keeps, per load walked before the onset, the growth rate (1/s, ln|z| times the sample
+    rate: < 0 stable) of the least stable pole in each band of BAND_NAMES (``walk_loads_n``,
+    ``walk_growth``)."""
 
     values: dict[str, float]
     critical_load_n: float
@@ -324,10 +339,22 @@ class Onset:
     spectral_radius: float
     points: int
     mode: str = "full"
+    walk_loads_n: tuple[float, ...] = ()
+    walk_growth: tuple[tuple[float, ...], ...] = ()
 
     @property
     def censored(self) -> bool:
         return self.onset_n is None
+
+    def growth_at(self, ratio: float) -> np.ndarray:
+        """Per band, the growth rate at ``ratio`` x own Fx,cr, linear between the walk's loads
+        (-inf where the walk holds nothing near)."""
+        load = ratio * self.critical_load_n
+        loads = np.asarray(self.walk_loads_n)
+        if loads.size < 2 or not loads[0] <= load <= loads[-1]:
+            return np.full(len(BAND_NAMES), -np.inf)
+        growth = np.asarray(self.walk_growth)
+        return np.array([np.interp(load, loads, growth[:, b]) for b in range(len(BAND_NAMES))])
 
     def to_dict(self) -> dict[str, Any]:
         return {"rig": dict(self.values), "onset_N": self.onset_n, "stable_to_N": self.stable_to_n,
@@ -336,64 +363,111 @@ class Onset:
                 "walk": self.mode}
 
 
-def _pole(plane: RigPlane, table: GainTable, schedule: GainSchedule, load: float) -> tuple[float, float]:
-    """(|z|, frequency in Hz) of the loop's pole of largest magnitude at ``load``."""
-    comp = table.compensator
-    m = plane.loop_matrix(load, schedule.matrices_at(load), comp.h, comp.plane_states[plane.plane],
-                          comp.period_s)
-    poles = np.linalg.eigvals(m)
-    z = poles[int(np.argmax(np.abs(poles)))]
-    return float(abs(z)), abs(float(np.angle(z))) * plane.sample_rate_hz / (2 * math.pi)
+@dataclass(frozen=True)
+class Margin:
+    """The growth rate (1/s) of the least stable pole of each band of BAND_NAMES of one rig's loop
+    at ``load_n`` (a fraction of its own Fx,cr): > 0 is unstable there."""
+
+    values: dict[str, float]
+    critical_load_n: float
+    load_n: float
+    growth: tuple[float, ...]
+
+
+class _Loop:
+    """The poles of one rig's closed loop at any load, summarised per band."""
+
+    def __init__(self, plane: RigPlane, table: GainTable, schedule: GainSchedule) -> None:
+        self.plane, self.table, self.schedule = plane, table, schedule
+        self.points = 0
+
+    def at(self, load: float) -> tuple[float, float, np.ndarray]:
+        """(|z|, Hz) of the pole of largest magnitude, and per band the growth rate (1/s) of its
+        least stable pole (-inf where a band has no pole)."""
+        comp = self.table.compensator
+        m = self.plane.loop_matrix(load, self.schedule.matrices_at(load), comp.h,
+                                   comp.plane_states[self.plane.plane], comp.period_s)
+        poles = np.linalg.eigvals(m)
+        self.points += 1
+        radius = np.abs(poles)
+        hz = np.abs(np.angle(poles)) * self.plane.sample_rate_hz / (2 * math.pi)
+        bands = np.searchsorted(BAND_EDGES_HZ, hz, side="right")
+        growth = np.full(len(BAND_NAMES), -np.inf)
+        with np.errstate(divide="ignore"):
+            rate = np.log(radius) * self.plane.sample_rate_hz
+        np.maximum.at(growth, bands, rate)
+        k = int(np.argmax(radius))
+        return float(radius[k]), float(hz[k]), growth
 
 
 def find_onset(plane: RigPlane, table: GainTable, schedule: GainSchedule, loads: np.ndarray,
-               resolution_n: float) -> tuple[float | None, float | None, float, float, int]:
+               resolution_n: float, keep_walk: bool = False):
     """Walk ``loads`` up to the first unstable one, bisect the step before it to ``resolution_n``:
-    (onset, stable to, pole Hz, |z|, points) as in ``Onset``."""
-    points = 0
+    (onset, stable to, pole Hz, |z|, points, walk loads, walk growth) as in ``Onset``; the walk
+    is kept only with ``keep_walk``."""
+    loop = _Loop(plane, table, schedule)
+    walked: list[float] = []
+    growths: list[tuple[float, ...]] = []
     previous = None
     largest = (-1.0, 0.0)
-    for load in loads:
-        radius, hz = _pole(plane, table, schedule, float(load))
-        points += 1
+    for load in (float(x) for x in loads):
+        radius, hz, growth = loop.at(load)
         if radius >= 1.0:
+            walk = (tuple(walked), tuple(growths))
             if previous is None:
-                return float(load), None, hz, radius, points
-            a, b = previous, float(load)
+                return load, None, hz, radius, loop.points, *walk
+            a, b = previous, load
             while b - a > resolution_n:
                 mid = 0.5 * (a + b)
-                r, f = _pole(plane, table, schedule, mid)
-                points += 1
+                r, f, _ = loop.at(mid)
                 if r >= 1.0:
                     b, radius, hz = mid, r, f
                 else:
                     a = mid
-            return b, a, hz, radius, points
-        previous = float(load)
+            return b, a, hz, radius, loop.points, *walk
+        previous = load
         largest = max(largest, (radius, hz))
-    return None, previous, largest[1], largest[0], points
+        if keep_walk:
+            walked.append(load)
+            growths.append(tuple(float(g) for g in growth))
+    return None, previous, largest[1], largest[0], loop.points, tuple(walked), tuple(growths)
+
+
+def _plane(table: GainTable, box: Box, values: Mapping[str, float]) -> RigPlane:
+    rig = rig_of(table, box, values)
+    return RigPlane(build_model(rig.params), rig.chain, rig.sample_rate_hz, rig.force_gain)
 
 
 def evaluate(table: GainTable, schedule: GainSchedule, box: Box, values: Mapping[str, float],
-             mode: str = "full") -> Onset:
-    """The onset of one rig (``values``: box key -> factor/offset/value): ``full`` walks the
-    check loads (``check_loads``), ``search`` the coarse ones (``search_loads``)."""
-    rig = rig_of(table, box, values)
-    plane = RigPlane(build_model(rig.params), rig.chain, rig.sample_rate_hz, rig.force_gain)
+             mode: str = "full", ratio: float | None = None) -> Onset | Margin:
+    """One rig (``values``: box key -> factor/offset/value): its onset, walking the check loads
+    (``full``, ``check_loads``) or the coarse ones (``search``, ``search_loads``, keeping the
+    walk's growth rates); or (``margin``) its growth rates at ``ratio`` x its own Fx,cr."""
+    if mode not in MODES:
+        raise ValueError(f"mode {mode!r}: expected one of {', '.join(MODES)}")
+    plane = _plane(table, box, values)
     critical = plane.critical_load_n
-    loads = (check_loads(table.loads_n, critical, box) if mode == "full"
-             else search_loads(table.loads_n, critical, box.search_step_n))
-    onset, stable_to, hz, radius, points = find_onset(plane, table, schedule, loads, box.resolution_n)
+    values = {k: float(v) for k, v in values.items()}
+    if mode == "margin":
+        load = float(ratio) * critical
+        return Margin(values=values, critical_load_n=critical, load_n=load,
+                      growth=tuple(float(g) for g in _Loop(plane, table, schedule).at(load)[2]))
+    search = mode == "search"
+    loads = (search_loads(table.loads_n, critical, box.search_step_n) if search
+             else check_loads(table.loads_n, critical, box))
+    onset, stable_to, hz, radius, points, walked, growths = find_onset(
+        plane, table, schedule, loads, box.resolution_n, keep_walk=search)
     end = onset if onset is not None else float(loads[-1])
-    return Onset(values={k: float(v) for k, v in values.items()}, critical_load_n=critical, onset_n=onset,
-                 stable_to_n=stable_to, ratio=end / critical, pole_hz=hz, spectral_radius=radius,
-                 points=points, mode=mode)
+    return Onset(values=values, critical_load_n=critical, onset_n=onset, stable_to_n=stable_to,
+                 ratio=end / critical, pole_hz=hz, spectral_radius=radius, points=points, mode=mode,
+                 walk_loads_n=walked, walk_growth=growths)
 
 
 # -------------------------------------------------------------------------------------------
 # evaluating many rigs: worker processes here, or a Dask cluster
 
-Evaluator = Callable[[list[tuple[dict[str, float], str]], Callable[[Onset], None] | None], list[Onset]]
+Job = tuple[dict[str, float], str, float | None]       # a rig's values, the mode, the margin's ratio
+Evaluator = Callable[[list[Job], Callable[[Any], None] | None], list[Any]]
 
 _WORKER: dict[str, Any] = {}
 
@@ -417,12 +491,11 @@ def _limit_blas() -> None:
         pass
 
 
-def _run(job: tuple[dict[str, float], str]) -> Onset:
-    values, mode = job
-    return evaluate(_WORKER["table"], _WORKER["schedule"], _WORKER["box"], values, mode)
+def _run(job: Job) -> Onset | Margin:
+    return evaluate(_WORKER["table"], _WORKER["schedule"], _WORKER["box"], *job)
 
 
-def evaluate_on_worker(job: tuple[dict[str, float], str], table: GainTable, box: Box) -> Onset:
+def evaluate_on_worker(job: Job, table: GainTable, box: Box) -> Onset | Margin:
     """One rig on a Dask worker (the table and box scattered once); the schedule is built once
     per worker and table."""
     key = ("schedule", id(table))
@@ -443,8 +516,8 @@ def local_evaluator(table: GainTable, box: Box, workers: int | None = None) -> I
 
         def here(jobs, each=None):
             out = []
-            for values, mode in jobs:
-                out.append(evaluate(table, schedule, box, values, mode))
+            for job in jobs:
+                out.append(evaluate(table, schedule, box, *job))
                 if each:
                     each(out[-1])
             return out
@@ -499,6 +572,7 @@ class RobustResult:
     box: Box
     verified: list[Onset] = field(default_factory=list)
     evaluated: list[Onset] = field(default_factory=list)
+    margins: list[Margin] = field(default_factory=list)
     phases: dict[str, int] = field(default_factory=dict)
     elapsed_s: float = 0.0
 
@@ -512,7 +586,8 @@ class RobustResult:
 
     @property
     def count(self) -> int:
-        return len(self.evaluated) + len(self.verified)
+        """Rigs evaluated: walked (search and verification) or at one load (the climbs)."""
+        return len(self.evaluated) + len(self.margins) + len(self.verified)
 
     def to_dict(self, table: GainTable | None = None) -> dict[str, Any]:
         w = self.worst
@@ -589,54 +664,81 @@ def search_worst(table: GainTable, box: Box, evaluator: Evaluator,
     from scipy.stats import qmc
 
     start = time.monotonic()
-    keys = list(box.parameters)
-    dim = len(keys)
+    dim = len(box.parameters)
     result = RobustResult(box=box)
     total = box.budget
-    units: list[np.ndarray] = []            # the unit-cube point of every evaluated rig
-
+    units: list[np.ndarray] = []            # the unit-cube point of every rig walked
     done = [0, math.inf]                    # rigs evaluated, the lowest ratio so far
 
-    def report(r: Onset) -> None:
+    def report(r: Onset | Margin) -> None:
         done[0] += 1
-        done[1] = min(done[1], r.ratio)
+        if isinstance(r, Onset):
+            done[1] = min(done[1], r.ratio)
         if progress:
             progress(done[0], total, f"worst so far {done[1]:.4f}")
 
-    def batch(us: Sequence[np.ndarray]) -> list[float]:
-        jobs = [(box.values(np.clip(u, 0.0, 1.0)), "search") for u in us]
-        out = evaluator(jobs, report)
+    def onsets(us: Sequence[np.ndarray]) -> list[float]:
+        """The onset ratios of the rigs at ``us`` (the search's walk)."""
+        points = [np.clip(np.asarray(u, dtype=float), 0.0, 1.0) for u in us]
+        out = evaluator([(box.values(u), "search", None) for u in points], report)
         result.evaluated.extend(out)
-        units.extend(np.clip(np.asarray(u, dtype=float), 0.0, 1.0) for u in us)
+        units.extend(points)
         return [r.ratio for r in out]
 
     # 1. global: differential evolution over the unit cube, population from a Latin hypercube
     init = qmc.LatinHypercube(d=dim, seed=box.seed).random(box.population)
     differential_evolution(_never, [(0.0, 1.0)] * dim, maxiter=box.generations, init=init, rng=box.seed,
-                           strategy=box.strategy,
-                           tol=0.0, atol=0.0, polish=False, updating="deferred",
-                           workers=lambda _f, xs: batch(list(xs)))
+                           strategy=box.strategy, tol=0.0, atol=0.0, polish=False, updating="deferred",
+                           workers=lambda _f, xs: onsets(list(xs)))
     result.phases["global"] = len(result.evaluated)
 
-    # 2. local: a compass search from each of the worst distinct rigs so far
-    starts = _distinct(units, [r.ratio for r in result.evaluated], box.starts, 0.25)
-    share = box.refine // max(1, len(starts))
+    # 2. the ways of failing that the worst so far hides: for each band of BAND_NAMES, climb the
+    # growth rate of its least stable pole at the worst ratio so far (x each rig's own Fx,cr),
+    # from the rig where it was highest; a rig unstable there is worse than the worst so far
+    worst = min(r.ratio for r in result.evaluated)
+    margins = 0
+    for b in range(len(BAND_NAMES)):
+        growth = [r.growth_at(worst)[b] for r in result.evaluated]
+        i = int(np.argmax(growth))
+        if not np.isfinite(growth[i]):
+            continue
+
+        def minus_growth(us: Sequence[np.ndarray], b: int = b) -> list[float]:
+            points = [np.clip(np.asarray(u, dtype=float), 0.0, 1.0) for u in us]
+            out = evaluator([(box.values(u), "margin", worst) for u in points], report)
+            result.margins.extend(out)
+            return [-m.growth[b] for m in out]
+
+        share = (box.margin - margins) // (len(BAND_NAMES) - b)
+        x, minus, used = _compass(units[i], -growth[i], minus_growth, share, stop_below=0.0)
+        margins += used
+        if minus < 0.0:                     # unstable below the worst so far: walk it
+            onsets([x])
+    result.phases["margin"] = margins
+
+    # 3. local: a compass search of the onset from each of the worst distinct rigs (one per way
+    # of failing first, then apart in the box)
+    starts = _distinct(units, [r.ratio for r in result.evaluated], box.starts, 0.25,
+                       [None if r.censored else r.pole_hz for r in result.evaluated])
     used = 0
-    for i in starts:
-        used += _compass(units[i], result.evaluated[i].ratio, batch, share)
+    for k, i in enumerate(starts):
+        share = (box.refine - used) // (len(starts) - k)
+        used += _compass(units[i], result.evaluated[i].ratio, onsets, share)[2]
     result.phases["refine"] = used
 
-    # 3. verify the worst distinct rigs at the fine steps, walked from the first load
-    chosen = _distinct(units, [r.ratio for r in result.evaluated], box.verify, 0.25)
-    total = len(result.evaluated) + len(chosen)
+    # 4. verify the worst distinct rigs at the fine steps, walked from the first load
+    chosen = _distinct(units, [r.ratio for r in result.evaluated], box.verify, 0.25,
+                       [None if r.censored else r.pole_hz for r in result.evaluated])
+    count = len(result.evaluated) + len(result.margins)
+    total = count + len(chosen)
     verified: list[Onset] = []
 
     def checked(r: Onset) -> None:
         verified.append(r)
         if progress:
-            progress(len(result.evaluated) + len(verified), total, f"verifying, {r.ratio:.4f}")
+            progress(count + len(verified), total, f"verifying, {r.ratio:.4f}")
 
-    result.verified = evaluator([(result.evaluated[i].values, "full") for i in chosen], checked)
+    result.verified = evaluator([(result.evaluated[i].values, "full", None) for i in chosen], checked)
     result.phases["verify"] = len(chosen)
     result.elapsed_s = time.monotonic() - start
     if progress:
@@ -644,27 +746,43 @@ def search_worst(table: GainTable, box: Box, evaluator: Evaluator,
     return result
 
 
-def _distinct(units: list[np.ndarray], ratios: list[float], count: int, apart: float) -> list[int]:
-    """Indices of the ``count`` lowest ratios whose points lie more than ``apart`` from each other
-    in the max-norm (the worst first)."""
+def _distinct(units: list[np.ndarray], ratios: list[float], count: int, apart: float,
+              poles_hz: list[float | None] | None = None) -> list[int]:
+    """Indices of the ``count`` lowest ratios, each one a rig of its own: first the lowest rig of
+    each way of failing (its pole's frequency more than a factor 2 from the others': the slow
+    mode 1, the closed-loop mode 1 near 100 Hz, mode 3 near 1 kHz, mode 5 near 2.7 kHz are
+    separate regions of the box; a censored rig, None, has none), then rigs more than ``apart``
+    from the chosen ones in the max-norm (the worst first)."""
+    order = [int(i) for i in np.argsort(ratios, kind="stable")]
     chosen: list[int] = []
-    for i in np.argsort(ratios, kind="stable"):
-        if all(np.max(np.abs(units[i] - units[j])) > apart for j in chosen):
-            chosen.append(int(i))
+    if poles_hz is not None:
+        for i in order:
+            if poles_hz[i] is None:
+                continue
+            hz = max(poles_hz[i], 1e-3)
+            if all(not 0.5 < hz / max(poles_hz[j], 1e-3) < 2.0 for j in chosen):
+                chosen.append(i)
+            if len(chosen) == count:
+                return sorted(chosen, key=lambda i: ratios[i])
+    for i in order:
         if len(chosen) == count:
             break
-    return chosen
+        if i not in chosen and all(np.max(np.abs(units[i] - units[j])) > apart for j in chosen):
+            chosen.append(i)
+    return sorted(chosen, key=lambda i: ratios[i])
 
 
-def _compass(x: np.ndarray, fx: float, batch: Callable[[list[np.ndarray]], list[float]], budget: int) -> int:
+def _compass(x: np.ndarray, fx: float, batch: Callable[[list[np.ndarray]], list[float]], budget: int,
+             stop_below: float = -math.inf) -> tuple[np.ndarray, float, int]:
     """A compass search from ``x`` (value ``fx``): each coordinate up and down by a step (a
     quarter of the range first), the neighbours evaluated together, and the point that takes
-    every coordinate's better move at once; move to the lowest if it is lower than here,
-    otherwise halve the step, down to 1/256. Returns the rigs evaluated."""
+    every coordinate's better move at once; move to the lowest if it is lower than here and
+    double the step (up to a quarter), otherwise halve it, down to 1/256; stop at a value below
+    ``stop_below``. Returns (the lowest point, its value, the points evaluated)."""
     step = 0.25
     used = 0
     x = x.copy()
-    while step >= 1.0 / 256 and used < budget:
+    while step >= 1.0 / 256 and used < budget and fx >= stop_below:
         trials, moves = [], []
         for i in range(len(x)):
             for sign in (1.0, -1.0):
@@ -674,27 +792,28 @@ def _compass(x: np.ndarray, fx: float, batch: Callable[[list[np.ndarray]], list[
                     trials.append(t)
                     moves.append(i)
         trials = trials[:budget - used]
-        ratios = batch(trials)
+        values = batch(trials)
         used += len(trials)
         better: dict[int, int] = {}
-        for k, (i, r) in enumerate(zip(moves, ratios, strict=False)):
-            if r < fx and (i not in better or r < ratios[better[i]]):
+        for k, (i, v) in enumerate(zip(moves, values, strict=False)):
+            if v < fx and (i not in better or v < values[better[i]]):
                 better[i] = k
         if not better:
             step /= 2
             continue
-        j = min(better.values(), key=lambda k: ratios[k])
-        x_next, f_next = trials[j], ratios[j]
+        j = min(better.values(), key=lambda k: values[k])
+        x_next, f_next = trials[j], values[j]
         if len(better) > 1 and used < budget:
             combined = x.copy()
             for i, k in better.items():
                 combined[i] = trials[k][i]
-            (r,) = batch([combined])
+            (v,) = batch([combined])
             used += 1
-            if r < f_next:
-                x_next, f_next = combined, r
+            if v < f_next:
+                x_next, f_next = combined, v
         x, fx = x_next, f_next
-    return used
+        step = min(0.25, 2 * step)           # a move that worked: larger steps again
+    return x, fx, used
 
 
 def _never(_u: np.ndarray) -> float:     # pragma: no cover - the search evaluates through its workers

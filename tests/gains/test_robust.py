@@ -12,6 +12,7 @@ from beamctl.gains.rig import RigPlane
 from beamctl.gains.robust import (
     DEFAULT_BOX,
     Box,
+    Margin,
     Onset,
     Range,
     box_from_dict,
@@ -30,7 +31,7 @@ from beamctl.models import build_model, load_parameters
 # the paper's design over a small box of E and the delay: cheap enough to search in a test
 SMALL_BOX = Box(parameters={"beam.youngs_modulus": Range("factor", 0.95, 1.05),
                             "io.delay_samples": Range("value", 0.0, 1.0)},
-                seed=7, population=10, generations=3, refine=24, starts=2, verify=2)
+                seed=7, population=10, generations=3, margin=40, refine=24, starts=2, verify=2)
 
 
 @pytest.fixture(scope="module")
@@ -135,7 +136,8 @@ def test_the_search_finds_the_worst_of_a_small_box_as_a_grid_scan_does(paper_des
     assert result.worst_ratio <= min(grid) + 0.005, f"search {result.worst_ratio:.4f}, grid {min(grid):.4f}"
     again = evaluate(paper_design, schedule, SMALL_BOX, result.worst.values)
     assert again.onset_n == result.worst.onset_n and again.ratio == result.worst_ratio
-    assert result.count == len(result.evaluated) + len(result.verified) <= SMALL_BOX.budget
+    counted = len(result.evaluated) + len(result.margins) + len(result.verified)
+    assert result.count == counted <= SMALL_BOX.budget
     assert progress[-1][0] == progress[-1][1] == result.count, progress[-3:]
     data = result.to_dict(paper_design)["robust"]
     assert data["worst_ratio"] == result.worst_ratio and data["evaluated"] == result.count
@@ -148,11 +150,11 @@ def _interacting(jobs, each=None):
     """A made-up box of four parameters that do no harm alone: the ratio drops below 1 only where
     u0 and u1 are both high and u2 lies near 0.4 (a delay inside the sample); u3 does nothing."""
     out = []
-    for values, _mode in jobs:
+    for values, _mode, _band in jobs:
         u = [values[f"p{i}"] for i in range(4)]
         ratio = 1.2 - 0.3 * u[0] ** 2 * u[1] ** 2 * max(0.0, 1.0 - abs(u[2] - 0.4) / 0.2)
         out.append(Onset(values=dict(values), critical_load_n=3000.0, onset_n=3000.0 * ratio,
-                         stable_to_n=3000.0 * ratio - 1, ratio=ratio, pole_hz=0.0, spectral_radius=1.0,
+                         stable_to_n=3000.0 * ratio - 1, ratio=ratio, pole_hz=100.0, spectral_radius=1.0,
                          points=1))
         if each:
             each(out[-1])
@@ -164,7 +166,7 @@ def test_the_search_finds_parameters_that_only_hurt_together(paper_design):
     worst, 0.9, needs u0 = u1 = 1 and u2 = 0.4 together. The search gets within 0.02 of it."""
     box = Box(parameters={f"p{i}": Range("value", 0.0, 1.0) for i in range(4)}, seed=3, population=16,
               generations=6, refine=200, starts=2, verify=2)
-    one_at_a_time = _interacting([({**{f"p{j}": 0.5 for j in range(4)}, f"p{i}": end}, "search")
+    one_at_a_time = _interacting([({**{f"p{j}": 0.5 for j in range(4)}, f"p{i}": end}, "search", None)
                                   for i in range(4) for end in (0.0, 1.0)])
     assert min(r.ratio for r in one_at_a_time) > 1.1
     result = search_worst(paper_design, box, _interacting)
@@ -173,13 +175,54 @@ def test_the_search_finds_parameters_that_only_hurt_together(paper_design):
     assert again.worst.values == result.worst.values, "the same seed found another rig"
 
 
+def _two_ways(jobs, each=None):
+    """A made-up box where the loop fails two ways: the 30-300 Hz band at 1.1 + 0.1 u0 nearly
+    everywhere, and the 300-1300 Hz band at 1.35 - 0.5 g with g = u1^2 u2^2 (1 - |u3 - 0.4| / 0.3)+:
+    below 1.1 only in a small corner, 0.85 at its bottom. The growth rate of a band at load ratio r
+    is 10 (r - its onset ratio); the walk goes from 0.5 to the onset in steps of 0.05."""
+    out = []
+    for values, mode, ratio in jobs:
+        u = [values[f"p{i}"] for i in range(4)]
+        g = u[1] ** 2 * u[2] ** 2 * max(0.0, 1.0 - abs(u[3] - 0.4) / 0.3)
+        onsets = np.array([np.inf, 1.1 + 0.1 * u[0], 1.35 - 0.5 * g, np.inf])
+
+        def growth(r, onsets=onsets):
+            return tuple(float(x) for x in np.where(np.isfinite(onsets), 10.0 * (r - onsets), -np.inf))
+
+        if mode == "margin":
+            out.append(Margin(values=dict(values), critical_load_n=3000.0, load_n=3000.0 * ratio,
+                              growth=growth(ratio)))
+        else:
+            first = float(onsets.min())
+            walk = np.arange(0.5, first, 0.05)
+            out.append(Onset(values=dict(values), critical_load_n=3000.0, onset_n=3000.0 * first,
+                             stable_to_n=3000.0 * first - 1.0, ratio=first, pole_hz=100.0,
+                             spectral_radius=1.0, points=1, mode=mode, walk_loads_n=tuple(3000.0 * walk),
+                             walk_growth=tuple(growth(r) for r in walk)))
+        if each:
+            each(out[-1])
+    return out
+
+
+def test_the_search_climbs_to_a_way_of_failing_that_another_hides(paper_design):
+    """Where one way of failing comes first nearly everywhere, a small global search sees only it
+    (1.1); climbing the other band's growth rate at the worst ratio so far finds the corner where
+    the other fails first (0.85). Without the climb the same search stops near 1.1."""
+    box = Box(parameters={f"p{i}": Range("value", 0.0, 1.0) for i in range(4)}, seed=5, population=8,
+              generations=1, margin=300, refine=120, starts=2, verify=2)
+    found = search_worst(paper_design, box, _two_ways)
+    assert found.worst_ratio < 0.87, f"the search stopped at {found.worst_ratio:.4f}: {found.worst.values}"
+    blind = search_worst(paper_design, replace(box, margin=0), _two_ways)
+    assert blind.worst_ratio > 1.0, f"without the climb the search found {blind.worst_ratio:.4f}: not hidden"
+
+
 def test_a_dask_cluster_evaluates_the_rigs_of_the_processes_here(paper_design):
     """The same rigs on a local Dask cluster (a scheduler and two worker processes on 127.0.0.1)
     and in worker processes here: the same onsets, in the order asked."""
     distributed = pytest.importorskip("distributed")
-    jobs = [({"beam.youngs_modulus": 0.96, "io.delay_samples": 0.8}, "search"),
-            ({"beam.youngs_modulus": 1.04, "io.delay_samples": 0.1}, "search"),
-            ({"beam.youngs_modulus": 1.0, "io.delay_samples": 0.5}, "full")]
+    jobs = [({"beam.youngs_modulus": 0.96, "io.delay_samples": 0.8}, "search", None),
+            ({"beam.youngs_modulus": 1.04, "io.delay_samples": 0.1}, "search", 2),
+            ({"beam.youngs_modulus": 1.0, "io.delay_samples": 0.5}, "full", None)]
     with local_evaluator(paper_design, SMALL_BOX, workers=2) as evaluator:
         here = evaluator(jobs)
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",

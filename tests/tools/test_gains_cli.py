@@ -18,6 +18,7 @@ def test_build_writes_a_checked_table_and_shows_progress(tmp_path, capsys, paper
     captured = capsys.readouterr()
     assert "gains build:" in captured.err and "100 %" in captured.err, "progress on stderr"
     assert "3 grid points" in captured.out and f"wrote {out}" in captured.out
+    assert "robust check skipped (--no-robust)" in captured.out, "a build that skips the robust part says so"
     table = load_table(out, paper_params)
     assert list(table.loads_n) == [0.0, 1000.0, 2000.0] and table.all_stable
 
@@ -76,6 +77,7 @@ SMALL_BOX = """box:
   seed: 7
   population: 6
   generations: 1
+  margin: 8
   refine: 8
   starts: 1
   verify: 1
@@ -105,7 +107,7 @@ def test_the_robust_check_reports_the_worst_rig_it_found_as_json(robust_run):
                            "worst_rig_si", "verified", "box"}, sorted(robust)
     assert set(robust["worst_rig"]) == {"beam.youngs_modulus", "io.delay_samples"}
     assert robust["worst_ratio"] == pytest.approx(robust["onset_N"] / robust["critical_load_N"])
-    assert 6 * 2 <= robust["evaluated"] <= 6 * 2 + 8 + 1, robust["evaluated"]
+    assert 6 * 2 <= robust["evaluated"] <= 6 * 2 + 8 + 8 + 1 + 1, robust["evaluated"]
     # the paper's design loses rigs of this box below their own Fx,cr (README: a sample late, E x0.95)
     assert robust["worst_ratio"] < 1.0 and status == 1, (status, robust["worst_ratio"])
     assert "robust check:" in err and "100 %" in err, "no progress on stderr with --json"
@@ -161,6 +163,20 @@ def test_a_dask_cluster_finds_the_worst_rig_the_processes_here_find(robust_run, 
     there = json.loads(out)["robust"]
     assert there["worst_rig"] == here["robust"]["worst_rig"], err.decode()[-2000:]
     assert there["onset_N"] == here["robust"]["onset_N"] and there["evaluated"] == here["robust"]["evaluated"]
+
+
+def test_build_runs_the_robust_check_over_its_box_with_progress(tmp_path, capsys):
+    """The robust part of a build says what it will do and how long it has left, and reports the
+    worst rig; the paper's design loses rigs of the small box: exit status 1, the table written."""
+    box = tmp_path / "box.yaml"
+    box.write_text(SMALL_BOX)
+    out = tmp_path / "g.yaml"
+    status = main(["gains", "build", "--design", "integral-lqr", "--grid", "0:4000:500", "--box", str(box),
+                   "--out", str(out)])
+    captured = capsys.readouterr()
+    assert "robust check: searching" in captured.err and "robust check: 100 %" in captured.err, captured.err
+    assert "worst onset / own Fx,cr" in captured.out and "NOT HELD" in captured.out, captured.out
+    assert status == 1 and out.exists()
 
 
 @pytest.mark.parametrize("flags", [["--seed", "3"], ["--box", "b.yaml"], ["--scheduler", "tcp://x:1"],
