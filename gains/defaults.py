@@ -110,8 +110,8 @@ PAPER_TABLE = "paper.yaml"
 #   300-700 N up to 3400 N (rigs up to 7 % softer than the model are at or beyond their own
 #   Fx,cr there and lose the slow mode 1 when the estimator believes mode 1 stiffer than it
 #   is), falling to about 0 above 3500 N (where only stiff rigs are still within 1.1 Fx,cr and
-#   a softened estimator destabilises their ~125 Hz mode 1). Each grid load's offset was chosen
-#   in the middle of the range that keeps the most rigs stable at that load. The soft rigs'
+#   a softened estimator destabilises their ~125 Hz mode 1). Each point of the schedule was chosen
+#   in the middle of the range that kept the most rigs stable at that load. The soft rigs'
 #   slow mode 1 (4-5 Hz) limits the search's worst case, where the schedule falls.
 # - The design assumes the voltages reach the stacks 0.35 sample after the sampling instant.
 LQG_SAMPLE_RATE_HZ = 6000.0

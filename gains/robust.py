@@ -14,15 +14,23 @@ The check minimises the onset ratio over the whole box:
 1. a global search: seeded differential evolution (scipy) from a Latin hypercube, every rig
    walked up from the table's first load (in steps of ``search_step_n``, four times that below
    half the rig's own Fx,cr) and the first unstable step bisected to ``resolution_n``;
-2. a local refinement of the best rig: a compass search (each parameter up and down by a step
-   that halves when no neighbour is worse), the neighbours evaluated in parallel;
-3. verification of the ``verify`` worst distinct rigs found: walked from the first load at every
+2. for each way of failing (the band of the unstable pole's frequency, BAND_NAMES), a climb of
+   that band's growth rate at the worst ratio so far (one load a rig, cheap): a way of failing
+   that another hides, because the other comes first nearly everywhere, has its own worst rigs;
+   a rig found unstable there is walked;
+3. a local refinement of the onset: a compass search (each parameter up and down by a step
+   that halves when no neighbour is worse) from each of the worst distinct rigs (one per way of
+   failing first), the neighbours evaluated in parallel;
+4. verification of the ``verify`` worst distinct rigs found: walked from the first load at every
    grid load and midpoint in steps of at most ``max_step_n`` (``fine_step_n`` within
    ``fine_band`` of the rig's own Fx,cr), the first unstable step bisected to ``resolution_n``.
 
 Parameters that do no harm alone (damping, stack gain, gauge placement, a delay inside the
 sample) can combine into the worst rig: the search varies all of them together. It is
 deterministic for a seed whatever evaluates the rigs: worker processes here, or a Dask cluster.
+A search is not a proof: its coarse walks assume a loop that, going up the loads, becomes
+unstable once (a window of instability narrower than a step is seen only by the verification's
+fine walk), and ~2000 rigs sample a 10-parameter box.
 """
 
 from __future__ import annotations
@@ -30,6 +38,7 @@ from __future__ import annotations
 import math
 import os
 import signal
+import threading
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
@@ -470,25 +479,20 @@ Job = tuple[dict[str, float], str, float | None]       # a rig's values, the mod
 Evaluator = Callable[[list[Job], Callable[[Any], None] | None], list[Any]]
 
 _WORKER: dict[str, Any] = {}
+_WORKER_LOCK = threading.Lock()
 
 
 def _init_worker(table: GainTable, box: Box) -> None:
-    # a worker process of this check: Ctrl-C at the terminal is the caller's to handle (the
-    # pool is shut down from there), not a traceback from every worker
+    # a worker process of this check (its own, spawned): Ctrl-C at the terminal is the caller's
+    # to handle (the pool is shut down from there), not a traceback from every worker; one BLAS
+    # thread, the processes share the cores
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _limit_blas()
+    from threadpoolctl import threadpool_limits
+
+    _WORKER["limits"] = threadpool_limits(1)
     _WORKER["table"] = table
     _WORKER["box"] = box
     _WORKER["schedule"] = GainSchedule.from_table(table)
-
-
-def _limit_blas() -> None:
-    """One BLAS thread in this process: the processes share the cores."""
-    try:
-        from threadpoolctl import threadpool_limits
-        _WORKER["limits"] = threadpool_limits(1)
-    except ImportError:     # pragma: no cover - threadpoolctl is a dependency
-        pass
 
 
 def _run(job: Job) -> Onset | Margin:
@@ -497,13 +501,12 @@ def _run(job: Job) -> Onset | Margin:
 
 def evaluate_on_worker(job: Job, table: GainTable, box: Box) -> Onset | Margin:
     """One rig on a Dask worker (the table and box scattered once); the schedule is built once
-    per worker and table."""
-    key = ("schedule", id(table))
-    if key not in _WORKER:
-        _limit_blas()
-        _WORKER.clear()
-        _WORKER[key] = GainSchedule.from_table(table)
-    return evaluate(table, _WORKER[key], box, *job)
+    per worker and table. BLAS threads are the cluster's to set (OPENBLAS_NUM_THREADS=1)."""
+    with _WORKER_LOCK:
+        if _WORKER.get("table") is not table:
+            _WORKER["table"], _WORKER["schedule"] = table, GainSchedule.from_table(table)
+        schedule = _WORKER["schedule"]
+    return evaluate(table, schedule, box, *job)
 
 
 @contextmanager

@@ -24,6 +24,21 @@ def number(*, low: float, inclusive: bool = True, integer: bool = False) -> Call
     return parse
 
 
+def integer(*, low: int, high: int) -> Callable[[str], int]:
+    """An integer from ``low`` to ``high``."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"{text!r}: expected an integer from {low} to {high}")
+        return value
+
+    return parse
+
+
 seconds = number(low=0.0)
 positive = number(low=0.0, inclusive=False)
 steps = number(low=1000, integer=True)

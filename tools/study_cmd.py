@@ -123,7 +123,9 @@ def run_study(study: Study, out: Path, client, progress=None) -> tuple[list[dict
                 if progress is not None:
                     elapsed = time.monotonic() - start
                     rate = new / elapsed if elapsed > 0 else 0.0
-                    progress(len(rows), total, f"{rate:.2f}/s")
+                    # the samples to run now (the bar's time left is theirs, not the resumed ones')
+                    before = f", {total - len(todo)} from before" if len(todo) < total else ""
+                    progress(new, len(todo), f"{rate:.2f}/s{before}")
     finally:
         for future in futures:
             future.cancel()
