@@ -59,11 +59,23 @@ def test_controlled_beam_stays_straight_to_3000_N_and_holds_beyond_the_critical_
     s, _ = report
     c = s["controlled"]
     # the integral action follows the load ramp with a lag in proportion to its rate: at the
-    # paper's 50 N/s it stays within 0.05 mm (README); this ramp is four times faster
-    assert c["max_deflection_below_3000N_mm"] < 0.1, c
+    # paper's 50 N/s it stays within 0.05 mm (the test below); this ramp is four times faster
+    assert c["max_deflection_below_3000N_mm"] < 4 * 0.05, c
     assert 0.0 <= c["min_voltage_V"] and c["max_voltage_V"] <= 150.0, "voltages within range"
     assert c["load_at_1.0mm_N"] >= CRITICAL_LOAD_N, c
     assert s["critical_load_N"] == pytest.approx(CRITICAL_LOAD_N, abs=1.0)
+
+
+def test_at_the_paper_s_ramp_rate_the_beam_stays_within_0_05_mm_up_to_3000_N():
+    """At 50 N/s (the paper's rate) the deflection the gauges see stays below 0.05 mm up to
+    3000 N: what the README states of the shipped design."""
+    cfg, settings = experiment_config({"plant": {"load": {"start": 260.0, "end": 3000.0, "rate": 50.0,
+                                                          "hold": 0.0}}})
+    trace = run_mode("interpolate", cfg, settings, load_gain_table(cfg))
+    load, deflection = np.asarray(trace.load_n), np.asarray(trace.deflection_m)
+    assert load.max() >= 2990.0, f"the run ended at {load.max():.0f} N: {trace.end}"
+    assert deflection.max() < 0.05e-3, (
+        f"{deflection.max() * 1e3:.3f} mm at {load[np.argmax(deflection)]:.0f} N: more than 0.05 mm below 3000 N")
 
 
 def test_the_shipped_design_and_the_paper_switching_both_hold_until_the_stacks_run_out(report):
@@ -301,21 +313,26 @@ def test_the_shipped_design_holds_a_stiffer_late_rig_beyond_its_own_critical_loa
 
 
 # Rigs of box B (gains/robust.py DEFAULT_BOX, box-relative values). The first is the worst rig of
-# the previous shipped design (the loop unstable from 0.948 of its own Fx,cr, mode 5 at 2.68 kHz;
-# the beam passed 1 mm at 0.968 in the time domain); the second is the worst rig the robust
-# check's search (seed 1) finds for the shipped design (slow mode 1, unstable from 1.107).
+# an earlier design (the loop unstable from 0.948 of its own Fx,cr, mode 5 at 2.68 kHz; the beam
+# passed 1 mm at 0.968 in the time domain); the second is the worst rig the robust check's search
+# (seed 1) finds for the shipped design (mode 1 at 188 Hz, unstable from 1.101); the third the
+# worst of the design before it (mode 7 folded to 1.18 kHz, unstable from 0.934).
 WORST_RIGS = {
     "stiff, lightly damped, strong stacks, 0.4 sample late": {
         "beam.youngs_modulus": 1.05, "supports.rotational_stiffness": 1.2, "supports.lateral_stiffness": 1.2,
         "supports.actuator_stiffness": 1.2, "damping.ratios": 0.5, "actuators.force_constant_n_per_v": 1.2,
         "sensors.strain_gauge_positions[0]": -1e-3, "sensors.strain_gauge_positions[1]": 1e-3,
         "io.delay_samples": 0.4, "sample_rate_hz": 0.99},
-    "the search's worst, seed 1": {
-        "beam.youngs_modulus": 0.9956, "supports.rotational_stiffness": 1.2,
-        "supports.lateral_stiffness": 1.064, "supports.actuator_stiffness": 1.2, "damping.ratios": 1.022,
-        "actuators.force_constant_n_per_v": 0.8,
-        "sensors.strain_gauge_positions[0]": -0.96e-3, "sensors.strain_gauge_positions[1]": 1e-3,
-        "io.delay_samples": 0.973, "sample_rate_hz": 0.9958},
+    "the search's worst, seed 1: stiff beam, soft supports, strong stacks, a sample late": {
+        "beam.youngs_modulus": 1.05, "supports.rotational_stiffness": 0.8, "supports.lateral_stiffness": 1.2,
+        "supports.actuator_stiffness": 0.8, "damping.ratios": 0.5, "actuators.force_constant_n_per_v": 1.2,
+        "sensors.strain_gauge_positions[0]": 1e-3, "sensors.strain_gauge_positions[1]": -1e-3,
+        "io.delay_samples": 1.0, "sample_rate_hz": 0.99},
+    "a previous design's worst: mode 7 folded to 1.2 kHz": {
+        "beam.youngs_modulus": 0.95, "supports.rotational_stiffness": 0.8, "supports.lateral_stiffness": 1.2,
+        "supports.actuator_stiffness": 0.8, "damping.ratios": 0.5, "actuators.force_constant_n_per_v": 1.2,
+        "sensors.strain_gauge_positions[0]": 1e-3, "sensors.strain_gauge_positions[1]": -1e-3,
+        "io.delay_samples": 0.435, "sample_rate_hz": 1.01},
 }
 
 
