@@ -90,27 +90,29 @@ PAPER_TABLE = "paper.yaml"
 #   noise model at 2.65-2.8 kHz in the Kalman filter: unstable at low loads. Estimator schedules
 #   without the faster estimator: 1.038 at best.
 # - The same LQG with a 2nd-order Butterworth anti-aliasing filter at 1.25 kHz and the
-#   estimator schedule below up to 3300 N, then 650/550/250/-100/-125/75 N at 3300..4000 N:
+#   estimator schedule below up to 3200 N, then 650/550/250/-100/-125/75 N at 3300, 3400,
+#   3500, 3600, 3800 and 4000 N:
 #   sets 1.115; the search without its per-band climbs 1.107 (the soft rigs' slow mode 1); the
 #   1000-rig study 1.1002. A compass search from the study's worst rig, then the search with
 #   its climbs (seed 1, 0.940), found E x0.95, kr x0.8, kl x1.2, kp x0.8, damping x0.5, stack
 #   gain x1.2, delay 0.435, gauges +1/-1 mm, rate x1.01 unstable from 0.934 of its own Fx,cr:
-#   mode 7 (about 5.1 kHz, sampled at 6060 Hz) folded to 1.18 kHz, where the fast estimator's
-#   gain is high; the Butterworth passes 0.06 of it.
+#   mode 7 (4.88 kHz on that rig, sampled at 6060 Hz) folded to 1.18 kHz, where the fast
+#   estimator's gain is high; the Butterworth passes 0.066 of it.
 # - Anti-aliasing filters with that design (the search's climbs and compass searches from the
 #   corners and the study's worst rigs): elliptic order 6 at 2 kHz (0.1 dB, 40 dB) 1.002 (mode
 #   1 of stiff rigs at 150 Hz: the filter's phase at 100-200 Hz); elliptic order 4 at 1.5 kHz
 #   1.016; at 1.75 kHz (0.5 dB, 30 dB) 1.021, the same rigs.
 # The shipped default: the delay-aware LQG (gains.lqg) with a 4th-order elliptic anti-aliasing
-# filter at 1.75 kHz (0.5 dB ripple, 30 dB attenuation: gain at most 0.034 from 2.5 kHz, so
-# mode 5 at 2.5-2.7 kHz and mode 7 are filtered 7 to 300 times more than by the Butterworth;
-# below 200 Hz the same phase lag, 12.6 deg at 190 Hz) and the estimator schedule re-chosen for it
-# (a little less softening at 3300-3600 N): the search 1.1007 (seed 1; seed 2 1.1010), the
-# worst rig E x1.05, kr x0.8, kl x1.2, kp x0.8, damping x0.5, stack gain x1.2, a whole sample
-# of delay, gauges +1/-1 mm, rate x0.99: the ~190 Hz closed-loop mode 1 at 3601 N of its own
-# 3271 N. 6000 Hz needs CAN FD (classic CAN carries at most 2819 Hz of these frames); the rig
-# must have that anti-aliasing filter on the four strain channels. What makes it hold
-# every rig of the box beyond its own Fx,cr:
+# filter at 1.75 kHz (0.5 dB ripple, 30 dB attenuation: gain at most 0.034 from 2.5 kHz and
+# 0.004 from 4.8 to 5.4 kHz, where the Butterworth passes 0.24 at 2.5 kHz and 0.054-0.068 at
+# 4.8-5.4 kHz; below 200 Hz about the same phase lag, 12.6 deg at 190 Hz against 12.4) and the
+# estimator schedule re-chosen for it (less softening at 3300-3500 N, more at 3600-3800 N):
+# the search 1.1007 (seed 1; seed 2 1.1010), the worst rig E x1.05, kr x0.8, kl x1.2, kp x0.8,
+# damping x0.5, stack gain x1.2, a whole sample of delay, gauges +1/-1 mm, rate x0.99: the
+# closed-loop mode 1 at 188 Hz, unstable from 3601 N of its own 3271 N; the 1000-rig study
+# 1.119. 6000 Hz needs CAN FD (classic CAN carries at most 2819 Hz of these frames); the rig
+# must have that anti-aliasing filter on the four strain channels. What makes it hold every
+# rig of the box beyond its own Fx,cr:
 # - A digital FIR (1 + 2 z^-1 + z^-2)/4 on the strains the estimator sees, in its design model
 #   (the Kalman filter knows it): a double zero at the Nyquist frequency gain-stabilises mode 5
 #   (2.5-2.7 kHz: |H| 0.03-0.07) for one sample of lag.
@@ -118,7 +120,7 @@ PAPER_TABLE = "paper.yaml"
 #   relies on their phase) and active damping of mode 3 (velocity weight 10^6.5), which keeps
 #   mode 3 (0.9-1 kHz) stable across the box's 0..1 sample output delay.
 # - A fast estimator (force noise 5 N, strain noise 0.05 microstrain) and q1 = 3e12: the
-#   ~125 Hz closed-loop mode 1 of stiff rigs with a one-sample delay and stack gain x1.2 keeps
+#   100-200 Hz closed-loop mode 1 of stiff rigs with a one-sample delay and stack gain x1.2 keeps
 #   its phase margin while soft rigs with stack gain x0.8 get enough stiffness. Its price: the
 #   compensator's gain at 0.5-1 kHz is 3 to 1000 times the 7-mode design's (most below
 #   3000 N); with 0.2 microstrain of noise on each gauge the nominal closed loop carries 0.08-0.10
@@ -127,10 +129,11 @@ PAPER_TABLE = "paper.yaml"
 # - The estimator's mode-1 softening scheduled on the load (estimator_mode1_offset_schedule):
 #   300-700 N up to 3300 N (rigs up to 7 % softer than the model are at or beyond their own
 #   Fx,cr there and lose the slow mode 1 when the estimator believes mode 1 stiffer than it
-#   is), falling to about 0 above 3500 N (where only stiff rigs are still within 1.1 Fx,cr and
-#   a softened estimator destabilises their ~125 Hz mode 1). Each point of the schedule was chosen
-#   in the middle of the range that kept the most rigs stable at that load. The soft rigs'
-#   slow mode 1 (4-5 Hz) limits the search's worst case, where the schedule falls.
+#   is), falling to 0 at 3600 N (where only stiff rigs are still within 1.1 Fx,cr and a
+#   softened estimator destabilises their closed-loop mode 1, 100-200 Hz). Each point of the
+#   schedule was chosen in the middle of the range that kept the most rigs stable at that load.
+#   What limits the search's worst case: the stiff rigs' mode 1 at 188 Hz (1.1007), then the
+#   soft rigs' slow mode 1 (4 Hz, 1.104) where the schedule falls.
 # - The design assumes the voltages reach the stacks 0.35 sample after the sampling instant.
 LQG_SAMPLE_RATE_HZ = 6000.0
 LQG_CHAIN = IOChain(delay_samples=0.35, anti_alias=AnalogFilter("elliptic", 4, 1750.0, 0.5, 30.0))

@@ -102,7 +102,10 @@ class IOChain:
         parts = [f"delay {self.delay_samples:g} samples"]
         for name, f in (("anti-alias", self.anti_alias), ("reconstruction", self.reconstruction)):
             if f is not None:
-                parts.append(f"{name} {f.type} order {f.order} at {f.cutoff_hz:g} Hz")
+                text = f"{name} {f.type} order {f.order} at {f.cutoff_hz:g} Hz"
+                if f.type == "elliptic":
+                    text += f" ({f.ripple_db:g} dB ripple, {f.attenuation_db:g} dB attenuation)"
+                parts.append(text)
         return ", ".join(parts)
 
 
@@ -313,7 +316,7 @@ def delayed_zoh(a: np.ndarray, b: np.ndarray, period: float, delay_samples: floa
     direct = np.zeros((n, 0)) if b_direct is None else b_direct
     both = np.hstack([b, direct])
     if fraction == 0.5:
-        # half a sample (the shipped chain's delay): one exponential over half the period gives
+        # half a sample: one exponential over half the period gives
         # both halves, exp(A T) = E E and int_0^T = G + E G
         e_half, g_half = _gamma(a, both, 0.5 * period)
         ad, gamma = e_half @ e_half, g_half + e_half @ g_half

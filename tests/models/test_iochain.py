@@ -95,3 +95,15 @@ def test_an_io_section_round_trips_through_its_dict():
                       "anti_alias": {"type": "elliptic", "order": 4, "cutoff_hz": 1500}})
     assert io_chain(chain.to_dict()) == chain
     assert io_chain({}).is_direct
+
+
+def test_the_description_names_what_an_elliptic_filter_needs_to_be_built_again():
+    """A rig is wired from the chain a table states: an elliptic filter's ripple and stop-band
+    attenuation are part of it (the shipped table's 30 dB is not the configuration default)."""
+    shipped = IOChain(0.35, AnalogFilter("elliptic", 4, 1750.0, 0.5, 30.0)).describe()
+    default = IOChain(0.35, AnalogFilter("elliptic", 4, 1750.0)).describe()
+    assert shipped == ("delay 0.35 samples, anti-alias elliptic order 4 at 1750 Hz "
+                       "(0.5 dB ripple, 30 dB attenuation)")
+    assert default != shipped, "two different filters, one description"
+    assert IOChain(1.0, AnalogFilter("butterworth", 2, 1250.0)).describe() == (
+        "delay 1 samples, anti-alias butterworth order 2 at 1250 Hz")

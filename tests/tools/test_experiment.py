@@ -9,6 +9,7 @@ import pytest
 
 from beamctl.config.schema import ConfigError
 from beamctl.models import build_model, critical_load, load_parameters
+from beamctl.models.iochain import IOChain
 from beamctl.rt.controller import COL
 from beamctl.rt.safety import State
 from beamctl.rt.telemetry import read_telemetry
@@ -59,8 +60,9 @@ def test_controlled_beam_stays_straight_to_3000_N_and_holds_beyond_the_critical_
     s, _ = report
     c = s["controlled"]
     # the integral action follows the load ramp with a lag in proportion to its rate: at the
-    # paper's 50 N/s it stays within 0.05 mm (the test below); this ramp is four times faster
-    assert c["max_deflection_below_3000N_mm"] < 4 * 0.05, c
+    # paper's 50 N/s 0.034 mm (the README's experiment; the test below bounds it by 0.05 mm),
+    # four times that on this ramp four times faster is 0.14 mm (0.11 mm measured)
+    assert c["max_deflection_below_3000N_mm"] < 0.15, c
     assert 0.0 <= c["min_voltage_V"] and c["max_voltage_V"] <= 150.0, "voltages within range"
     assert c["load_at_1.0mm_N"] >= CRITICAL_LOAD_N, c
     assert s["critical_load_N"] == pytest.approx(CRITICAL_LOAD_N, abs=1.0)
@@ -68,7 +70,7 @@ def test_controlled_beam_stays_straight_to_3000_N_and_holds_beyond_the_critical_
 
 def test_at_the_paper_s_ramp_rate_the_beam_stays_within_0_05_mm_up_to_3000_N():
     """At 50 N/s (the paper's rate) the deflection the gauges see stays below 0.05 mm up to
-    3000 N: what the README states of the shipped design."""
+    3000 N (the README's experiment: 0.034 mm; the paper's figure 7a: straight there)."""
     cfg, settings = experiment_config({"plant": {"load": {"start": 260.0, "end": 3000.0, "rate": 50.0,
                                                           "hold": 0.0}}})
     trace = run_mode("interpolate", cfg, settings, load_gain_table(cfg))
@@ -277,9 +279,7 @@ def test_an_experiment_on_a_delayed_rig_runs_and_its_report_states_the_chain_and
     summary = json.loads(capsys.readouterr().out)
     designed = load_gain_table(experiment_config()[0]).design.io
     # the rig keeps the chain the design declares (its anti-alias filter) but for the delay given
-    aa = designed.anti_alias
-    assert summary["io_chain"] == {"description": f"delay 1 samples, anti-alias {aa.type} order {aa.order} at "
-                                                  f"{aa.cutoff_hz:g} Hz",
+    assert summary["io_chain"] == {"description": IOChain(1.0, designed.anti_alias).describe(),
                                    "delay_samples": 1.0, "anti_alias": designed.anti_alias.to_dict(),
                                    "reconstruction": "none"}
     assert summary["controlled"]["design"].startswith("lqg, 6000 Hz"), summary["controlled"]
@@ -325,7 +325,7 @@ WORST_RIGS = {
         "supports.actuator_stiffness": 1.2, "damping.ratios": 0.5, "actuators.force_constant_n_per_v": 1.2,
         "sensors.strain_gauge_positions[0]": -1e-3, "sensors.strain_gauge_positions[1]": 1e-3,
         "io.delay_samples": 0.4, "sample_rate_hz": 0.99},
-    "the search's worst, seed 1: stiff beam, soft supports, strong stacks, a sample late": {
+    "the search's worst, seed 1: stiff beam, soft kr and kp, strong stacks, a sample late": {
         "beam.youngs_modulus": 1.05, "supports.rotational_stiffness": 0.8, "supports.lateral_stiffness": 1.2,
         "supports.actuator_stiffness": 0.8, "damping.ratios": 0.5, "actuators.force_constant_n_per_v": 1.2,
         "sensors.strain_gauge_positions[0]": 1e-3, "sensors.strain_gauge_positions[1]": -1e-3,

@@ -102,6 +102,7 @@ def test_the_study_writes_one_row_per_sample_a_summary_and_figures(embedded):
         else:
             assert onset < 4000.0 and r["reason"].startswith(f"unstable from {onset:.0f} N"), r
     failed = [float(r["ratio"]) for r in rows if r["censored"] == "false"]
+    assert failed, "the paper's design loses these rigs within the table (censored rows: tests below)"
     summary = json.loads((embedded / "summary.json").read_text())
     design = next(iter(summary["designs"].values()))
     assert summary["samples"] == 6 and design["censored"] == 6 - len(failed)
