@@ -131,8 +131,7 @@ def test_sigterm_ramps_to_bias_and_stops(table):
 def test_the_loop_installs_no_signal_handler(table):
     """Library code: the loop leaves the process's handlers as they are; Ctrl-C without a stop
     request of the caller's leaves it through the emergency ramp to bias."""
-    # time passes only when the loop sleeps: a busy machine cannot make the run end (a timing
-    # fault) before the Ctrl-C at cycle 200
+    # time passes only when the loop sleeps: the run does not depend on this machine's speed
     clock = FakeClock(tick=0.0)
     config = controller_config({"start_ramp_time_s": 0.0, "safety": {"ramp_time_s": RAMP_TIME}})
     hal = ScriptedHal(table.design.sample_rate_hz, [], default=oscillating, sleep=clock.sleep).open()
