@@ -217,6 +217,32 @@ def nested(key: str, value: Any) -> dict[str, Any]:
     return out
 
 
+def dotted_get(root: Mapping[str, Any], key: str) -> Any:
+    """The value at a dotted key of a nested mapping, ``a.b`` or an element ``a.b[i]``."""
+    base, _, index = key.partition("[")
+    node: Any = root
+    for part in base.split("."):
+        node = node[part]
+    return node[int(index[:-1])] if index else node
+
+
+def dotted_update(root: dict[str, Any], key: str, change: Callable[[Any], Any]) -> None:
+    """Replace the value at a dotted key (as ``dotted_get``) by ``change(old)``; a whole list
+    element by element."""
+    base, _, index = key.partition("[")
+    *parents, leaf = base.split(".")
+    node: Any = root
+    for part in parents:
+        node = node[part]
+    if index:
+        i = int(index[:-1])
+        node[leaf][i] = change(node[leaf][i])
+    elif isinstance(node[leaf], list):
+        node[leaf] = [change(x) for x in node[leaf]]
+    else:
+        node[leaf] = change(node[leaf])
+
+
 def validate(data: Any, schema: Schema, source: str = "", prefix: str = "") -> dict[str, Any]:
     """Check ``data`` against ``schema`` and return the converted values.
 

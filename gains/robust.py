@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from beamctl.config.schema import ConfigError, read_yaml
+from beamctl.config.schema import ConfigError, dotted_get, dotted_update, read_yaml
 from beamctl.gains.rig import RigPlane
 from beamctl.gains.schedule import GainSchedule
 from beamctl.gains.table import GainTable
@@ -240,22 +240,10 @@ def load_box(path: str, params: ModelParameters) -> Box:
 
 
 def _set(node: dict, key: str, rng: Range, value: float) -> None:
-    base, _, index = key.partition("[")
-    parts = base.split(".")
-    for part in parts[:-1]:
-        node = node[part]
-    leaf = parts[-1]
-
     def new(old: float) -> float:
         return old * value if rng.kind == "factor" else old + value if rng.kind == "offset" else value
 
-    if index:
-        i = int(index[:-1])
-        node[leaf][i] = new(node[leaf][i])
-    elif isinstance(node[leaf], list):
-        node[leaf] = [new(x) for x in node[leaf]]
-    else:
-        node[leaf] = new(node[leaf])
+    dotted_update(node, key, new)
 
 
 @dataclass(frozen=True)
@@ -621,11 +609,8 @@ def rig_si(table: GainTable, box: Box, values: Mapping[str, float]) -> dict[str,
         elif key == "actuators.force_constant_n_per_v":
             out["actuators.force_gain"] = rig.force_gain
         else:
-            base, _, index = key.partition("[")
-            node: Any = model
-            for part in base.split("."):
-                node = node[part]
-            node = node[int(index[:-1])] if index else node
+            base = key.partition("[")[0]
+            node = dotted_get(model, key)
             if isinstance(node, list):
                 for i, x in enumerate(node):
                     out[f"{base}[{i}]"] = float(x)

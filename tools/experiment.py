@@ -34,7 +34,16 @@ from pathlib import Path
 
 import numpy as np
 
-from beamctl.config.schema import ConfigError, boolean, choice, merge, positive, read_yaml, validate
+from beamctl.config.schema import (
+    ConfigError,
+    boolean,
+    choice,
+    dotted_update,
+    merge,
+    positive,
+    read_yaml,
+    validate,
+)
 from beamctl.gains.build import build_table
 from beamctl.gains.table import GainTable, require_checked
 from beamctl.hal.sim import SimBackend
@@ -175,7 +184,7 @@ def rig_scenario(table: GainTable, table_path: str, rig_si: dict[str, float],
     the table at ``table_path``: the rig's own beam, I/O delay and DAQ rate, and stacks whose
     force per volt the controller believes ``force_constant_n_per_v`` x ``stack_scale`` while the
     rig's are that times its stack gain (force does not limit)."""
-    model: dict = {}
+    model = table.model_parameters.to_dict()        # the design's model, the rig's values set
     plant: dict = {"load": dict(ramp or {})}
     gain = 1.0
     for key, value in rig_si.items():
@@ -186,29 +195,13 @@ def rig_scenario(table: GainTable, table_path: str, rig_si: dict[str, float],
         elif key == "actuators.force_gain":
             gain = float(value)
         else:
-            base, _, index = key.partition("[")
-            *parents, leaf = base.split(".")
-            node = model
-            for part in parents:
-                node = node.setdefault(part, {})
-            if index:
-                i = int(index[:-1])
-                current = node.setdefault(leaf, list(_lookup(table.model_parameters.to_dict(), base)))
-                current[i] = float(value)
-            else:
-                node[leaf] = float(value)
+            dotted_update(model, key, lambda _old, v=float(value): v)
     plant["model"] = model
     believed = force_constant_n_per_v * stack_scale
     return {"model": table.model_parameters.to_dict(), "gains": {"table": str(table_path)}, "plant": plant,
             "controller": {"actuators": {"force_constant_n_per_v": believed}},
             "hal": {"sim": {"own_actuators": True, "actuators": {"force_constant_n_per_v": believed * gain}}},
             "experiment": {"paper_mode": False}}
-
-
-def _lookup(node: dict, dotted: str):
-    for part in dotted.split("."):
-        node = node[part]
-    return node
 
 
 def paper_table(cfg: ServiceConfig) -> GainTable:

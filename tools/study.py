@@ -53,7 +53,7 @@ from typing import Any
 
 import numpy as np
 
-from beamctl.config.schema import ConfigError, read_yaml
+from beamctl.config.schema import ConfigError, dotted_get, dotted_update, read_yaml
 
 KINDS = ("linear", "experiment")
 LAWS = ("uniform", "normal", "truncated-normal")
@@ -325,7 +325,7 @@ def _linear(task: Task, table) -> dict[str, Any]:
     model = table.model_parameters.to_dict()
     for key, v in task.values.items():
         if key.startswith("model."):
-            kind = "factor" if isinstance(_lookup(model, key[6:]), list) else "value"
+            kind = "factor" if isinstance(dotted_get(model, key[6:]), list) else "value"
             params[key[6:]] = Range(kind, v, v)
             values[key[6:]] = v
         elif key == "actuators.force_constant_n_per_v":
@@ -349,29 +349,11 @@ def _linear(task: Task, table) -> dict[str, Any]:
             "reason": f"unstable from {r.onset_n:.0f} N{first} ({r.pole_hz:.0f} Hz)"}
 
 
-def _lookup(node: Any, key: str) -> Any:
-    """The value at a dotted key (``[i]`` an element) of a nested mapping."""
-    base, _, index = key.partition("[")
-    for part in base.split("."):
-        node = node[part]
-    return node[int(index[:-1])] if index else node
-
-
 def _set_model_value(model: dict, key: str, value: float) -> None:
     """Set a drawn value in a model dict: a scalar key or a list element replaced, a whole list
     multiplied (the key conventions of the study file)."""
-    base, _, index = key.partition("[")
-    parts = base.split(".")
-    node = model
-    for part in parts[:-1]:
-        node = node[part]
-    leaf = parts[-1]
-    if index:
-        node[leaf][int(index[:-1])] = value
-    elif isinstance(node[leaf], list):
-        node[leaf] = [x * value for x in node[leaf]]
-    else:
-        node[leaf] = value
+    whole_list = isinstance(dotted_get(model, key), list)
+    dotted_update(model, key, (lambda old: old * value) if whole_list else (lambda old: value))
 
 
 def _experiment(task: Task, table) -> dict[str, Any]:

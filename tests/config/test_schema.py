@@ -5,6 +5,8 @@ import pytest
 
 from beamctl.config.schema import (
     ConfigError,
+    dotted_get,
+    dotted_update,
     integer,
     merge,
     number,
@@ -96,3 +98,13 @@ def test_a_renamed_key_is_refused_naming_the_new_one_wherever_it_is_nested():
             refuse_renamed(data, renamed, "lab.yaml", "controller.")
         assert err.value.key == key and f"{key}_s in its place" in str(err.value), str(err.value)
     refuse_renamed({"safety": 0.5}, renamed)   # not a mapping: left to validate, which names it
+
+
+def test_a_dotted_key_reads_and_changes_a_value_an_element_or_a_whole_list():
+    data = {"beam": {"length": 0.4}, "damping": {"ratios": [0.015, 0.0045]}}
+    assert dotted_get(data, "beam.length") == 0.4 and dotted_get(data, "damping.ratios[1]") == 0.0045
+    dotted_update(data, "beam.length", lambda old: old + 0.1)
+    dotted_update(data, "damping.ratios[0]", lambda old: 0.02)
+    assert data == {"beam": {"length": 0.5}, "damping": {"ratios": [0.02, 0.0045]}}
+    dotted_update(data, "damping.ratios", lambda old: 2 * old)
+    assert data["damping"]["ratios"] == [0.04, 0.009], "a whole list: each element changed"
