@@ -134,6 +134,20 @@ def integer(*, low: int | None = None, high: int | None = None) -> Validator:
     return check
 
 
+def optional(validator: Validator, meaning: str) -> Validator:
+    """``null`` (None, with ``meaning``: what no value stands for) or a value ``validator`` accepts."""
+
+    def check(value: Any) -> Any:
+        if value is None:
+            return None
+        try:
+            return validator(value)
+        except _Invalid as exc:
+            raise _Invalid(f"{exc.expected}, or null ({meaning})") from None
+
+    return check
+
+
 def number_list(element: Validator, length: int, description: str) -> Validator:
     """A list of exactly ``length`` numbers, each passing ``element``."""
     expected = f"a list of {length} {description}"

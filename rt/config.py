@@ -16,6 +16,7 @@ from beamctl.config.schema import (
     nonnegative,
     number,
     number_list,
+    optional,
     positive,
     refuse_renamed,
     validate,
@@ -49,12 +50,14 @@ CONTROLLER_DEFAULTS: dict[str, Any] = {
     "safety": {
         "strain_limit_fraction": 0.5,   # of the proportional-limit strain sigma_p / E
         "load_range_n": [-200.0, 5000.0],  # load-cell range; the gain table's range applies too
-        "stale_periods": 5,             # periods of time without a valid sample before a fault
-        # latency budget: a sample's answer (its voltages) must be sent within this many periods
-        # of the sample's arrival on the bus; half a period is what the shipped design assumes
-        # (its I/O chain's delay), and a streak of late answers is a fault
-        "answer_budget_periods": 0.5,
-        "late_answer_streak": 10,
+        # Ride-through: samples missing in a row that are bridged by the estimator's prediction
+        # (more: STALE_INPUT), the answer budget (an answer sent later than this many periods
+        # after its sample arrived is late) and the late answers in a row tolerated (more:
+        # LATE_ANSWERS). null: the limits of the gain table's ride-through analysis, computed
+        # when the table was built (gains/ridethrough.py); a value may tighten them, never loosen.
+        "stale_periods": None,
+        "answer_budget_periods": None,
+        "late_answer_streak": None,
         "overrun_streak": 10,
         "saturation_time_s": 0.5,       # continuous saturation before a fault
         "ramp_time_s": 0.5,             # to ramp the voltages to bias on a fault or stop
@@ -97,9 +100,10 @@ _SCHEMA = {
     "safety": {
         "strain_limit_fraction": number(low=0.0, high=1.0, low_open=True),
         "load_range_n": number_list(number("N"), 2, "loads [low, high]"),
-        "stale_periods": integer(low=1),
-        "answer_budget_periods": number(low=0.0, high=100.0, low_open=True),
-        "late_answer_streak": integer(low=1),
+        "stale_periods": optional(integer(low=0), "the gain table's ride-through limit"),
+        "answer_budget_periods": optional(number(low=0.0, high=100.0, low_open=True),
+                                          "the gain table's ride-through limit"),
+        "late_answer_streak": optional(integer(low=0), "the gain table's ride-through limit"),
         "overrun_streak": integer(low=1),
         "saturation_time_s": positive("s"),
         "ramp_time_s": positive("s"),
@@ -125,12 +129,12 @@ class Actuators:
 class Safety:
     strain_limit_fraction: float
     load_range: tuple[float, float]     # N, key safety.load_range_n
-    stale_periods: int
+    stale_periods: int | None           # None: the gain table's ride-through limit
     overrun_streak: int
     saturation_time: float              # s, key safety.saturation_time_s
     ramp_time: float                    # s, key safety.ramp_time_s
-    answer_budget_periods: float = 0.5
-    late_answer_streak: int = 10
+    answer_budget_periods: float | None = None
+    late_answer_streak: int | None = None
 
 
 @dataclass(frozen=True)

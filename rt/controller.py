@@ -1,22 +1,25 @@
-"""The control step: one controller form for every design, a scheduled discrete state-space
+"""The controller: one controller form for every design, a scheduled discrete state-space
 compensator with integral action (gains/compensator.py), run each sample as the dSPACE system
-ran the paper's controller (section 4).
+ran the paper's controller (section 4), by the compiled engine (rt/engine.py).
 
-Per sample, in this order:
-1. q = (C0 Phi)^-1 y (eq. 30), for telemetry and the operator (the law reads y itself);
-2. integral action xi += T H y; with anti-windup, an increment whose effect -Ki dxi would push
+Per sample, in this order (the engine's ``cycle``):
+1. input checks (strain and load-cell ranges), then, after a gap of the sample sequence, the
+   estimator's prediction over the missing samples;
+2. q = (C0 Phi)^-1 y (eq. 30), for telemetry and the operator (the law reads y itself);
+3. integral action xi += T H y; with anti-windup, an increment whose effect -Ki dxi would push
    a saturated support further along its demanded force is skipped;
-3. the law u = -(C x_c + D y) - Ki xi at the filtered load (the schedule's product);
-4. allocation to the six stack voltages (rt.allocation), faded in from bias after a start;
-5. the lateral forces those voltages produce, u_applied = M (V - V_bias), and the compensator's
+4. the law u = -(C x_c + D y) - Ki xi at the filtered load (the schedule's product);
+5. allocation to the six stack voltages, clamped to the voltage range, faded in from bias after
+   a start;
+6. the lateral forces those voltages produce, u_applied = M (V - V_bias), and the compensator's
    next state x_c = A x_c + B y + E u_applied (so an estimator sees the force the stacks give,
-   saturated or not);
-6. safety (rt.safety): input checks before 1, saturation after 4, and the ramps of the lifecycle.
+   saturated or not); the saturation count.
 
-The compensator starts at rest on the sample it starts on, x_c = start y (bumpless: for the
-paper's design the velocity estimate starts at zero). Every quantity the telemetry stores lives
-in one preallocated record (``RECORD_COLUMNS``); the step only runs numpy calls with ``out=``
-and scalar arithmetic on precomputed data.
+This class is the engine's Python face: it allocates the engine's arrays, prepares gain tables
+(their matrices flattened once), and turns the lifecycle into engine commands. The compensator
+starts at rest on the sample it starts on, x_c = start y (bumpless: for the paper's design the
+velocity estimate starts at zero). Every quantity the telemetry stores lives in one preallocated
+record (``RECORD_COLUMNS``, rt/engine.py).
 """
 
 from __future__ import annotations
@@ -25,61 +28,52 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from beamctl.config.schema import ConfigError
 from beamctl.gains.schedule import GainSchedule
 from beamctl.gains.table import GainTable
 from beamctl.hal.base import Sample
+from beamctl.rt import engine as e
 from beamctl.rt.allocation import Allocator
 from beamctl.rt.config import ControllerConfig
+from beamctl.rt.engine import (  # noqa: F401 (the record's layout, re-exported for its readers)
+    COL,
+    FLAG_BRIDGED,
+    FLAG_FADING_IN,
+    FLAG_INTEGRATOR_HELD,
+    FLAG_LOAD_OUT_OF_TABLE,
+    FLAG_NAMES,
+    FLAG_NO_NEW_SAMPLE,
+    FLAG_RAMPING_TO_BIAS,
+    FLAG_SATURATED_A,
+    FLAG_SATURATED_B,
+    I_ANSWER_AGE_US,
+    I_BRIDGED,
+    I_FAULT,
+    I_FLAGS,
+    I_INPUT_PERIOD_US,
+    I_LATE_ANSWERS,
+    I_LOAD,
+    I_LOAD_FILTERED,
+    I_OPERATOR_COMMAND,
+    I_SCALE_A,
+    I_SCALE_B,
+    I_SEQUENCE,
+    I_SIGNALS,
+    I_STATE,
+    I_STEP_US,
+    I_TIME,
+    N_COLUMNS,
+    RECORD_COLUMNS,
+    SIGNAL_COLUMNS,
+)
 from beamctl.rt.safety import Fault, Safety, State, TransitionError
 
-# The compensator's signals y, xi and u_applied (gains/schedule.py) are the record's last twelve
-# columns, and its state x_c follows them in the same buffer, past the record: the schedule's
-# products read the signal vector [y; xi; u_applied; x_c] where the telemetry stores it.
-SIGNAL_COLUMNS = ([f"strain_{c}" for c in ("y1", "z1", "y2", "z2")]
-                  + [f"xi_{m}" for m in ("1y", "1z", "2y", "2z")]
-                  + ["applied_force_y_A_N", "applied_force_z_A_N", "applied_force_y_B_N",
-                     "applied_force_z_B_N"])
-RECORD_COLUMNS = (
-    ["time_s", "sequence", "state", "fault", "flags"]
-    + ["load_N", "load_filtered_N"]
-    + [f"q_{m}" for m in ("1y", "1z", "2y", "2z")]
-    + ["force_y_A_N", "force_z_A_N", "force_y_B_N", "force_z_B_N"]
-    + [f"voltage_{s}_V" for s in ("a1", "a2", "a3", "b1", "b2", "b3")]
-    + ["scale_A", "scale_B", "step_us"]
-    # timing of the link: time between this sample's arrival and the previous one's, the age of
-    # this sample when its answer was sent (NaN where the HAL does not measure it), and the
-    # count of late answers so far (rt/safety.py)
-    + ["input_period_us", "answer_age_us", "late_answers"]
-    # an operator's command carried out or refused at this sample (rt/loop.py operator_labels)
-    + ["operator_command"]
-    + SIGNAL_COLUMNS
-)
-COL = {name: i for i, name in enumerate(RECORD_COLUMNS)}
-N_COLUMNS = len(RECORD_COLUMNS)
-I_SIGNALS = N_COLUMNS - len(SIGNAL_COLUMNS)
-# indices used in the step (integers decided here, not looked up by name in the loop)
-I_TIME, I_SEQUENCE, I_STATE, I_FAULT, I_FLAGS = (COL[n] for n in ("time_s", "sequence", "state",
-                                                                  "fault", "flags"))
-I_LOAD, I_LOAD_FILTERED = COL["load_N"], COL["load_filtered_N"]
-I_SCALE_A, I_SCALE_B, I_STEP_US = COL["scale_A"], COL["scale_B"], COL["step_us"]
-I_INPUT_PERIOD_US, I_ANSWER_AGE_US, I_LATE_ANSWERS = (COL[n] for n in ("input_period_us", "answer_age_us",
-                                                                       "late_answers"))
-I_OPERATOR_COMMAND = COL["operator_command"]
-
-# flag bits
-FLAG_SATURATED_A = 1
-FLAG_SATURATED_B = 2
-FLAG_INTEGRATOR_HELD = 4
-FLAG_LOAD_OUT_OF_TABLE = 8
-FLAG_NO_NEW_SAMPLE = 16
-FLAG_FADING_IN = 32
-FLAG_RAMPING_TO_BIAS = 64
-FLAG_NAMES = {FLAG_SATURATED_A: "SATURATED_A", FLAG_SATURATED_B: "SATURATED_B",
-              FLAG_INTEGRATOR_HELD: "INTEGRATOR_HELD", FLAG_LOAD_OUT_OF_TABLE: "LOAD_OUT_OF_TABLE",
-              FLAG_NO_NEW_SAMPLE: "NO_NEW_SAMPLE", FLAG_FADING_IN: "FADING_IN",
-              FLAG_RAMPING_TO_BIAS: "RAMPING_TO_BIAS"}
 # the flags that start a triggered recording's window (with any change of a coded column)
 TRIGGER_FLAGS = FLAG_SATURATED_A | FLAG_SATURATED_B
+
+# Without a ride-through analysis in the table (a file written before tables carried one), the
+# limits the controller had before: 5 samples missing, 10 late answers, half a period.
+LEGACY_GAP_LIMIT, LEGACY_LATE_LIMIT, LEGACY_BUDGET_PERIODS = 5, 10, 0.5
 
 # Units of the columns whose names do not end in one (``load_N``, ``voltage_a1_V``, ``step_us``,
 # ``time_s`` do): strains are m/m, the modal coordinates of the mass-normalised modes (eq. 15)
@@ -119,14 +113,50 @@ class PreparedTable:
 
     table: GainTable
     schedule: GainSchedule
-    buffer: np.ndarray          # [N_COLUMNS + n]: the record, then the compensator's state
+    buffer: np.ndarray          # the record, the compensator's state, the engine's scratch
+    mats: np.ndarray            # every matrix of the table, flat (rt/engine.py ``O_*``)
+    table_iv: np.ndarray        # the engine's per-table integer settings (``engine.TABLE_IV``)
+    alpha: float                # the load filter's coefficient
+    half_band_n: float
+    first_n: float
+    last_n: float
+    gap_limit: int              # samples missing in a row the loop rides through
+    late_limit: int             # late answers in a row it rides through
+    budget_s: float             # an answer later than this after its sample is late
     c0_phi_inv: np.ndarray
-    integral_map: np.ndarray    # T H
-    start_map: np.ndarray
+
+
+def _stacked(blocks: list[np.ndarray]) -> np.ndarray:
+    return np.concatenate([np.ascontiguousarray(b).ravel() for b in blocks])
+
+
+def ride_through_limits(table: GainTable, config: ControllerConfig) -> tuple[int, int, float]:
+    """(samples missing in a row, late answers in a row, answer budget in periods) that the
+    loop rides through: the table's ride-through analysis (stored with the table when it was
+    built), tightened by the configuration where it sets a smaller value; a configured value
+    beyond the analysis is refused (ConfigError)."""
+    s = config.safety
+    rt = getattr(table, "ride_through", None)
+    if rt is None:
+        gap, late, budget = LEGACY_GAP_LIMIT, LEGACY_LATE_LIMIT, LEGACY_BUDGET_PERIODS
+        source = "the limits used without a ride-through analysis in the table"
+    else:
+        gap, budget = int(rt.gap_limit_samples), float(rt.answer_budget_periods)
+        late = gap
+        source = "the gain table's ride-through analysis"
+    for key, value, limit in (("stale_periods", s.stale_periods, gap), ("late_answer_streak",
+                              s.late_answer_streak, late), ("answer_budget_periods", s.answer_budget_periods,
+                                                            budget)):
+        if value is not None and value > limit:
+            raise ConfigError(f"controller.safety.{key}", value,
+                              f"at most {limit:g}, what {source} allows (a smaller value tightens it)")
+    return (gap if s.stale_periods is None else s.stale_periods,
+            late if s.late_answer_streak is None else s.late_answer_streak,
+            budget if s.answer_budget_periods is None else s.answer_budget_periods)
 
 
 class Controller:
-    """The compensator of a gain table with its allocation and safety.
+    """The compensator of a gain table with its allocation and safety, run by the engine.
 
     In every state but RUNNING the stacks are not controlled, yet q is still estimated from
     each sample (telemetry, monitoring an uncontrolled beam).
@@ -134,7 +164,7 @@ class Controller:
     Lifecycle: ``arm(sample)`` (stacks at bias), ``start()`` (bumpless: integrator zero,
     compensator at rest on the current sample, voltages faded in from bias), ``step(sample)``
     once per sample (``step(None, silent_periods)`` when the sample is missing: the voltages hold
-    until the stale-input fault), ``fault(...)``, ``request_stop()``, ``rearm()``.
+    and the silence counts towards STALE_INPUT), ``fault(...)``, ``request_stop()``, ``rearm()``.
     """
 
     def __init__(self, table: GainTable, config: ControllerConfig, *, excitation: np.ndarray | None = None,
@@ -146,49 +176,99 @@ class Controller:
         self.sample_rate_hz = table.design.sample_rate_hz
         self.period = 1.0 / self.sample_rate_hz
         self.model_sha256 = table.model_sha256
-        self.allocator = Allocator(config.actuators, config.allocation)
-        self._bind(self.prepare_table(table))
+        self.iv = iv = np.zeros(e.N_IV, dtype=np.int64)
+        self.fv = fv = np.zeros(e.N_FV)
+        self.allocator = Allocator(config.actuators, config.allocation, fv[e.X_SCALE_A:e.X_SCALE_B + 1])
         self._force_matrix = np.ascontiguousarray(self.allocator.geometry.force_matrix())
-        self._dxi = np.zeros(4)
-        self._du = np.zeros(4)
-        self._dv = np.zeros(6)
-        self._target = np.zeros(6)                            # voltages from the allocation
-        self._bias = np.full(6, config.actuators.bias_voltage)
-        self._law = law
         self._excitation = None if excitation is None else np.ascontiguousarray(excitation, dtype=float)
         if self._excitation is not None and (self._excitation.ndim != 2 or self._excitation.shape[1] != 6):
             raise ValueError(f"excitation must be [n x 6] volts, got shape {self._excitation.shape}")
-        self.excitation_index = 0       # excitation rows applied since the start
-        self.excitation_enabled = True  # the rows advance only while enabled (set between steps)
-        self._v_min, self._v_max = config.actuators.min_voltage_v, config.actuators.max_voltage_v
-
+        act = config.actuators
+        self._v_min, self._v_max = act.min_voltage_v, act.max_voltage_v
+        self._law = law
         beam = table.model_parameters.beam
-        self.safety = Safety(config.safety, beam.proportional_limit / beam.youngs_modulus,
-                             config.actuators.bias_voltage, self.sample_rate_hz, self.voltages)
+        s = config.safety
+        iv[e.V_ANTI_WINDUP] = 1 if config.anti_windup else 0
+        iv[e.V_LAW] = 1 if law else 0
+        iv[e.V_CLIP] = 1 if config.allocation == "clip" else 0
+        iv[e.V_START_SAMPLES] = max(1, round(config.start_ramp_time * self.sample_rate_hz))
+        iv[e.V_SAT_LIMIT] = max(1, round(s.saturation_time * self.sample_rate_hz))
+        iv[e.V_OVERRUN_LIMIT] = s.overrun_streak
+        iv[e.V_RAMP_SAMPLES] = max(1, int(round(s.ramp_time * self.sample_rate_hz)))
+        iv[e.V_EXC_ROWS] = 0 if self._excitation is None else len(self._excitation)
+        iv[e.V_EXC_ENABLED] = 1
+        iv[e.V_FAULT_CHANNEL] = -1
+        alloc = self.allocator
+        fv[e.P_STRAIN_LIMIT] = s.strain_limit_fraction * beam.proportional_limit / beam.youngs_modulus
+        fv[e.P_LOAD_LOW], fv[e.P_LOAD_HIGH] = s.load_range
+        fv[e.P_V_MIN], fv[e.P_V_MAX] = alloc.min_voltage_v, alloc.max_voltage_v
+        fv[e.P_V_MID] = alloc.mid_voltage_v
+        fv[e.P_SPAN], fv[e.P_SPAN_FITS] = alloc.voltage_span_v, alloc.span_fits
+        fv[e.P_BIAS] = act.bias_voltage
+        fv[e.X_SCALE_A] = fv[e.X_SCALE_B] = 1.0
+        self._bias = np.full(6, act.bias_voltage)
+        self.safety = Safety(self, iv, fv, tuple(s.load_range), s.ramp_time)
         self.supervisor = self.safety.supervisor
-        self._anti_windup = config.anti_windup
-        self._start_samples = max(1, round(config.start_ramp_time * self.sample_rate_hz))
-        self._steps_since_start = 0
+        self._bind(self.prepare_table(table))
         self.voltages[:] = self._bias
         self.record[I_LOAD] = np.nan        # no load seen yet (a start then keeps the schedule's)
+        self.record[I_TIME] = np.nan
 
     # -- the gain table ----------------------------------------------------------------------------
     def prepare_table(self, table: GainTable) -> PreparedTable:
-        """Everything the step needs of ``table`` (its schedule, its maps, a record buffer sized
-        for its compensator), made ready off the loop for ``use_table``. A table for another
-        sample rate or another model than this controller's is refused (ValueError)."""
+        """Everything the engine needs of ``table`` (its matrices flat, a record buffer sized for
+        its compensator, its settings), made ready off the loop for ``use_table``. A table for
+        another sample rate or another model than this controller's is refused (ValueError); a
+        configured safety limit beyond the table's ride-through analysis too (ConfigError)."""
         rate = table.design.sample_rate_hz
         if rate != self.sample_rate_hz:
             raise ValueError(f"the table runs at {rate:g} Hz, the controller at {self.sample_rate_hz:g} Hz")
         if table.model_sha256 != self.model_sha256:
             raise ValueError(f"the table was designed for the model with SHA-256 {table.model_sha256}, "
                              f"the controller runs the model with SHA-256 {self.model_sha256}")
+        gap, late, budget_periods = ride_through_limits(table, self.config)
         comp = table.compensator
-        return PreparedTable(table=table, schedule=GainSchedule.from_table(table),
-                             buffer=np.zeros(N_COLUMNS + comp.n_states),
-                             c0_phi_inv=np.ascontiguousarray(table.c0_phi_inv),
-                             integral_map=np.ascontiguousarray(self.period * comp.h),      # T H
-                             start_map=np.ascontiguousarray(comp.start))
+        schedule = GainSchedule.from_table(table)
+        n = comp.n_states
+        predict = getattr(comp, "predict", None)
+        parts = {
+            "c0": np.asarray(table.c0_phi_inv, dtype=float),
+            "th": self.period * np.asarray(comp.h, dtype=float),            # T H
+            "force": self._force_matrix,
+            "coef": self.allocator.coefficients,
+            "loads": np.asarray(table.loads_n, dtype=float),
+            "out": _stacked(schedule._output_blocks),
+            "upd": _stacked(schedule._update_blocks),
+            "int": _stacked(schedule._integral_blocks),
+            "pred": (_stacked(GainSchedule.stacked_blocks(predict, table.loads_n)) if predict is not None
+                     else np.zeros(0)),
+            "start": np.asarray(comp.start, dtype=float),
+            "exc": self._excitation if self._excitation is not None else np.zeros(0),
+        }
+        offsets, at = {}, 0
+        for key, part in parts.items():
+            offsets[key] = at
+            at += np.asarray(part).size
+        mats = np.concatenate([np.ascontiguousarray(p, dtype=float).ravel() for p in parts.values()])
+        table_iv = np.zeros(e.N_IV - e.V_PAPER, dtype=np.int64)
+
+        def put(slot: int, value: int) -> None:
+            table_iv[slot - e.V_PAPER] = value
+
+        put(e.V_PAPER, 1 if schedule.mode == "paper" else 0)
+        put(e.V_N_LOADS, len(table.loads_n))
+        put(e.V_N_X, n)
+        put(e.V_PREDICT, 1 if predict is not None else 0)
+        for slot, key in ((e.O_C0, "c0"), (e.O_TH, "th"), (e.O_FORCE, "force"), (e.O_COEF, "coef"),
+                          (e.O_LOADS, "loads"), (e.O_OUT, "out"), (e.O_UPD, "upd"), (e.O_INT, "int"),
+                          (e.O_PRED, "pred"), (e.O_START, "start"), (e.O_EXC, "exc")):
+            put(slot, offsets[key])
+        return PreparedTable(table=table, schedule=schedule,
+                             buffer=np.zeros(N_COLUMNS + n + e.scratch_size(n)), mats=mats,
+                             table_iv=table_iv, alpha=schedule.alpha, half_band_n=schedule.half_band_n,
+                             first_n=float(table.loads_n[0]), last_n=float(table.loads_n[-1]),
+                             gap_limit=int(gap), late_limit=int(late), budget_s=budget_periods * self.period,
+                             c0_phi_inv=np.ascontiguousarray(table.c0_phi_inv))
 
     def use_table(self, prepared: PreparedTable) -> None:
         """Run the table of ``prepared`` (``prepare_table``) from the next step on. Only at bias
@@ -203,203 +283,149 @@ class Controller:
         np.copyto(buffer[:N_COLUMNS], self.record)
         buffer[N_COLUMNS:] = 0.0
         self._bind(prepared)
-        self.safety.voltages = self.voltages
-        self.schedule.reset(self.record[I_LOAD])
+        self._command(e.C_RESET_SCHEDULE)
 
     def _bind(self, p: PreparedTable) -> None:
-        """The table's schedule and maps, and the views of its buffer: the record, and the
-        compensator's state after it."""
+        """The table's arrays and settings into the engine, and the views of its buffer: the
+        record, and the compensator's state after it."""
         self.table = p.table
         self.schedule = p.schedule
+        self._prepared = p
+        iv, fv = self.iv, self.fv
+        iv[e.TABLE_IV] = p.table_iv
+        iv[e.V_GAP_LIMIT], iv[e.V_LATE_LIMIT] = p.gap_limit, p.late_limit
+        fv[e.P_ALPHA], fv[e.P_HALF_BAND] = p.alpha, p.half_band_n
+        fv[e.P_FIRST], fv[e.P_LAST] = p.first_n, p.last_n
+        fv[e.P_BUDGET_S] = p.budget_s
+        self._mats = p.mats
         buffer = p.buffer
+        self._buffer = buffer
         r = buffer[:N_COLUMNS]
         self.record = r
-        self.q = r[COL["q_1y"]:COL["q_1y"] + 4]
-        self.u = r[COL["force_y_A_N"]:COL["force_y_A_N"] + 4]
-        self.voltages = r[COL["voltage_a1_V"]:COL["voltage_a1_V"] + 6]
-        # the compensator's signal vector s = [y; xi; u_applied; x_c]: the record's last columns
-        # and the state after them
-        self._signals = buffer[I_SIGNALS:]
-        self.strains = r[COL["strain_y1"]:COL["strain_y1"] + 4]
-        self.xi = r[COL["xi_1y"]:COL["xi_1y"] + 4]
-        self.applied_forces = r[COL["applied_force_y_A_N"]:COL["applied_force_y_A_N"] + 4]
-        self.compensator_state = buffer[N_COLUMNS:]
+        self.q = r[e.I_Q:e.I_Q + 4]
+        self.u = r[e.I_U:e.I_U + 4]
+        self.voltages = r[e.I_V:e.I_V + 6]
+        self.strains = r[e.I_Y:e.I_Y + 4]
+        self.xi = r[e.I_XI:e.I_XI + 4]
+        self.applied_forces = r[e.I_APPLIED:e.I_APPLIED + 4]
+        n = p.table.compensator.n_states
+        self.compensator_state = buffer[N_COLUMNS:N_COLUMNS + n]
         self._c0_phi_inv = p.c0_phi_inv
-        self._integral_map = p.integral_map
-        self._start_map = p.start_map
+
+    # -- the engine ---------------------------------------------------------------------------------
+    def _command(self, what: int, arg: int = 0) -> int:
+        return int(e.command(self._buffer, self.iv, self.fv, self._mats, what, arg))
+
+    def _inputs(self, sample: Sample | None) -> int:
+        if sample is None:
+            return 0
+        fv = self.fv
+        fv[e.IN_TIME] = sample.timestamp
+        fv[e.IN_SEQUENCE] = sample.sequence
+        fv[e.IN_LOAD] = sample.axial_load
+        fv[e.IN_MISSED] = sample.missed
+        fv[e.IN_Y:e.IN_Y + 4] = sample.strains
+        return 1
+
+    def _refused(self, code: int, action: str, allowed: str) -> None:
+        if code == e.R_NOT_AT_BIAS:
+            raise TransitionError(f"cannot {action} before the voltages have ramped to bias")
+        if code == e.R_STATE:
+            raise TransitionError(f"cannot {action} in state {self.state.name} (allowed from {allowed})")
 
     # -- lifecycle -----------------------------------------------------------------------------
     @property
     def state(self) -> State:
-        return self.supervisor.state
+        return State(int(self.iv[e.V_STATE]))
 
     def arm(self, sample: Sample | None = None) -> None:
         """Stacks at bias, integrator cleared; the first sample primes the load filter."""
-        self.supervisor.arm()
-        self._clear(sample)
+        self._refused(self._command(e.C_ARM, self._inputs(sample)), "arm", "INIT")
 
     def rearm(self, sample: Sample | None = None) -> None:
         """Operator acknowledgement after a fault or stop; only once the ramp has reached bias
         (the voltages never jump)."""
-        if not self.at_bias:
-            raise TransitionError("cannot re-arm before the voltages have ramped to bias")
-        self.supervisor.rearm()
-        self._clear(sample)
-
-    def _clear(self, sample: Sample | None) -> None:
-        self.xi[:] = 0.0
-        self.compensator_state[:] = 0.0
-        self.voltages[:] = self._bias
-        self.applied_forces[:] = 0.0
-        self.safety.clear()
-        self.allocator.scale_a = self.allocator.scale_b = 1.0
-        self.record[I_TIME] = np.nan if sample is None else sample.timestamp
-        if sample is not None:
-            self.record[I_LOAD] = sample.axial_load
-            self.schedule.reset(sample.axial_load)
-            self.strains[:] = sample.strains
-            np.dot(self._c0_phi_inv, self.strains, out=self.q)
+        self._refused(self._command(e.C_REARM, self._inputs(sample)), "re-arm", "FAULT, STOPPED")
+        self.supervisor.python_detail = ""
 
     def start(self) -> None:
         """Start controlling from the latest sample: integrator at zero, the compensator at
         rest on that sample and the schedule settled at its load (no kick however long the
         controller sat armed), voltages faded in from bias. A start on a non-finite strain
         faults at once."""
-        self.supervisor.start()
-        self.schedule.reset(self.record[I_LOAD])
-        self._steps_since_start = 0
-        self.excitation_index = 0
-        self.xi[:] = 0.0
-        if not np.all(np.isfinite(self.strains)):
-            self.q[:] = 0.0
-            self.compensator_state[:] = 0.0
-            self.fault(Fault.STRAIN_NOT_FINITE, "non-finite strain when starting")
-            return
-        np.dot(self._start_map, self.strains, out=self.compensator_state)
+        self._refused(self._command(e.C_START), "start", "ARMED")
 
     def request_stop(self) -> None:
         """Ramp to bias and stop (SIGINT/SIGTERM, end of run)."""
-        self.safety.request_stop()
+        self._command(e.C_STOP)
 
     def fault(self, fault: Fault, detail: str = "") -> None:
         """Latch ``fault`` (first one wins) and ramp the voltages to bias."""
-        self.safety.trip(fault, detail)
+        latched = self.supervisor.fault != Fault.NONE
+        self._command(e.C_TRIP, int(fault))
+        if not latched and self.supervisor.fault == fault:
+            self.supervisor.python_detail = detail
 
     # -- the step ---------------------------------------------------------------------------------
     def step(self, sample: Sample | None, silent_periods: float | None = None) -> np.ndarray:
         """One control period. ``sample`` None means no new sample arrived; ``silent_periods`` is
         then the time since the last one in periods (None: one more period). Returns the six
         voltages to write (the controller's own array)."""
-        r = self.record
-        r[I_FLAGS] = 0.0
-        r[I_ANSWER_AGE_US] = np.nan
-        safety = self.safety
+        fv = self.fv
         if sample is None:
-            r[I_FLAGS] = FLAG_NO_NEW_SAMPLE
-            r[I_INPUT_PERIOD_US] = np.nan
-            safety.sample_missing(silent_periods)
+            fv[e.IN_SILENT] = -1.0 if silent_periods is None else silent_periods
+            e.cycle(self._buffer, self.iv, fv, self._mats, 0)
         else:
-            safety.sample_arrived(sample.timestamp)
-            r[I_INPUT_PERIOD_US] = (sample.timestamp - r[I_TIME]) * 1e6
-            r[I_TIME] = sample.timestamp
-            r[I_SEQUENCE] = sample.sequence
-            self.strains[:] = sample.strains
-            r[I_LOAD] = sample.axial_load
-            if self.supervisor.state == State.RUNNING:
-                safety.check_inputs(self.strains, sample.axial_load)
-        state = self.supervisor.state
-        if state == State.RUNNING:
-            if sample is not None:      # no new sample: the voltages hold, the law waits
-                self._control()
-        else:
-            if sample is not None:      # keep observing: q for telemetry and the operator
-                np.dot(self._c0_phi_inv, self.strains, out=self.q)
-            if state in (State.FAULT, State.STOPPING):
-                self._ramp()
-            self._take_applied_forces()
-        r[I_STATE] = self.supervisor.state
-        r[I_FAULT] = self.supervisor.fault
+            fv[e.IN_TIME] = sample.timestamp
+            fv[e.IN_SEQUENCE] = sample.sequence
+            fv[e.IN_LOAD] = sample.axial_load
+            fv[e.IN_MISSED] = sample.missed
+            y = sample.strains
+            fv[e.IN_Y] = y[0]
+            fv[e.IN_Y + 1] = y[1]
+            fv[e.IN_Y + 2] = y[2]
+            fv[e.IN_Y + 3] = y[3]
+            e.cycle(self._buffer, self.iv, fv, self._mats, 1)
         return self.voltages
 
-    def _control(self) -> None:
-        r = self.record
-        if self._law:
-            schedule = self.schedule
-            schedule.follow(r[I_LOAD])
-            r[I_LOAD_FILTERED] = schedule.filtered_load_n
-            if schedule.out_of_range:
-                r[I_FLAGS] += FLAG_LOAD_OUT_OF_TABLE
-                self.fault(Fault.LOAD_OUT_OF_TABLE_RANGE,
-                           f"filtered load {schedule.filtered_load_n:.1f} N outside the table's "
-                           f"[{self.table.loads_n[0]:g}, {self.table.loads_n[-1]:g}] N")
-                self._ramp()
-                self._take_applied_forces()
-                return
-            # 1. q = (C0 Phi)^-1 y (eq. 30), for telemetry
-            np.dot(self._c0_phi_inv, self.strains, out=self.q)
-            # 2. integral action with anti-windup
-            np.dot(self._integral_map, self.strains, out=self._dxi)
-            alloc = self.allocator
-            if self._anti_windup and (alloc.scale_a < 1.0 or alloc.scale_b < 1.0):
-                schedule.integral_effect(self._dxi, self._du)       # -Ki dxi: what the increment does
-                u, du = self.u, self._du
-                winds = ((alloc.scale_a < 1.0 and du[0] * u[0] + du[1] * u[1] > 0.0)
-                         or (alloc.scale_b < 1.0 and du[2] * u[2] + du[3] * u[3] > 0.0))
-                if winds:
-                    r[I_FLAGS] += FLAG_INTEGRATOR_HELD
-                else:
-                    self.xi += self._dxi
-            else:
-                self.xi += self._dxi
-            # 3. u = -(C x_c + D y) - Ki xi at the filtered load
-            schedule.output(self._signals, self.u)
-            # 4. allocation
-            alloc.allocate(self.u, self._target)
-            r[I_SCALE_A] = alloc.scale_a
-            r[I_SCALE_B] = alloc.scale_b
-            if alloc.scale_a < 1.0:
-                r[I_FLAGS] += FLAG_SATURATED_A
-            if alloc.scale_b < 1.0:
-                r[I_FLAGS] += FLAG_SATURATED_B
-        else:                           # open loop (identification): bias plus the excitation
-            np.dot(self._c0_phi_inv, self.strains, out=self.q)
-            self._target[:] = self._bias
-        if self._excitation is not None and self.excitation_enabled:
-            self._excite()
-        # the bumpless start: voltages faded in from bias
-        self._steps_since_start += 1
-        if self._steps_since_start < self._start_samples:
-            r[I_FLAGS] += FLAG_FADING_IN
-            fade = self._steps_since_start / self._start_samples
-            np.subtract(self._target, self._bias, out=self.voltages)
-            self.voltages *= fade
-            self.voltages += self._bias
-        else:
-            self.voltages[:] = self._target
-        # 5. the forces these voltages produce, and the compensator's next state
-        self._take_applied_forces()
-        if self._law:
-            self.schedule.update(self._signals, self.compensator_state)
-            self.safety.saturation(self.allocator.scale_a < 1.0 or self.allocator.scale_b < 1.0)
+    def answer_sent(self, age_s: float) -> None:
+        """The answer to the latest sample had been sent ``age_s`` after the sample arrived (NaN:
+        not measured): late answers are counted and a streak beyond the limit faults."""
+        e.answered(self._buffer, self.iv, self.fv, age_s)
 
-    def _excite(self) -> None:
-        """The next excitation row onto the target voltages, within the voltage limits."""
-        k = self.excitation_index
-        if k < len(self._excitation):
-            self._target += self._excitation[k]
-            np.clip(self._target, self._v_min, self._v_max, out=self._target)
-            self.excitation_index = k + 1
+    # -- the loop's emergency exit -------------------------------------------------------------------
+    def emergency_ramp_begin(self) -> None:
+        """Begin the one ramp to bias from the voltages now (the loop's exit on an error)."""
+        self._command(e.C_RAMP_BEGIN)
 
-    def _take_applied_forces(self) -> None:
-        """u_applied = M (V - V_bias): the lateral forces the voltages about to be written give,
-        with the controller's own stack geometry."""
-        np.subtract(self.voltages, self._bias, out=self._dv)
-        np.dot(self._force_matrix, self._dv, out=self.applied_forces)
+    def emergency_ramp_advance(self) -> bool:
+        """The ramp's next voltages into ``voltages``; True once at bias (nothing to write)."""
+        return self._command(e.C_RAMP_ADVANCE) == 1
 
-    def _ramp(self) -> None:
-        self.record[I_FLAGS] += FLAG_RAMPING_TO_BIAS
-        self.safety.ramp_step()
+    # -- identification's excitation -------------------------------------------------------------------
+    @property
+    def excitation_index(self) -> int:
+        """Excitation rows applied since the start."""
+        return int(self.iv[e.V_EXC_INDEX])
+
+    @property
+    def excitation_enabled(self) -> bool:
+        """The rows advance only while enabled (set between steps)."""
+        return bool(self.iv[e.V_EXC_ENABLED])
+
+    @excitation_enabled.setter
+    def excitation_enabled(self, value: bool) -> None:
+        self.iv[e.V_EXC_ENABLED] = 1 if value else 0
 
     @property
     def at_bias(self) -> bool:
         return self.safety.at_bias
+
+    @property
+    def filtered_load_n(self) -> float:
+        return float(self.fv[e.X_FILTERED])
+
+    @property
+    def steps_since_start(self) -> int:
+        return int(self.iv[e.V_STEPS])
+

@@ -8,11 +8,13 @@ Pacing:
 - ``sample``: one step per new sample from the HAL, so a DAQ streaming at its own clock (or
   a simulated plant in simulated time) sets the rate. Each sample is answered by exactly one
   write; a read time-out writes only while the voltages ramp to bias (a backend whose answers
-  pair with samples, CAN, sends nothing for it). Without a valid sample for ``stale_periods``
-  periods of time (measured on the loop's clock) a running controller faults.
+  pair with samples, CAN, sends nothing for it). When more samples are missing, in time measured
+  on the loop's clock, than the controller rides through (its gap limit), a running controller
+  faults.
 
-Each answer's age (the sample's arrival to the send call, where the HAL measures it) is checked
-against the latency budget (rt/safety.py) and recorded with the sample.
+Each answer's age (the sample's arrival to the answer having been sent, where the HAL measures
+it) goes to the engine, which counts late answers against the answer budget, and is recorded
+with the sample.
 
 Start-up order: real-time set-up (SCHED_FIFO, memory lock, the garbage collector collected and
 frozen) first, then the HAL is opened (if the caller has not), then whatever the HAL queued
@@ -51,11 +53,9 @@ from beamctl.hal.base import HalBase, HalError, HalStaleData
 from beamctl.rt import realtime
 from beamctl.rt.controller import (
     FLAG_RAMPING_TO_BIAS,
-    I_ANSWER_AGE_US,
     I_FAULT,
     I_FLAGS,
     I_INPUT_PERIOD_US,
-    I_LATE_ANSWERS,
     I_LOAD,
     I_OPERATOR_COMMAND,
     I_STATE,
@@ -391,9 +391,8 @@ class ControlLoop:
         along the safety's ramp, writing each step directly to the HAL, before the error
         propagates."""
         c = self.controller
-        ramp = c.safety.ramp
-        ramp.begin(c.voltages)
-        while not ramp.advance(c.voltages):
+        c.emergency_ramp_begin()
+        while not c.emergency_ramp_advance():
             try:
                 self.hal.write(c.voltages)
             except Exception:   # the HAL is gone too: nothing more can be sent
@@ -416,7 +415,7 @@ class ControlLoop:
         period = self.period
         timer = self.pacing == "timer"
         read_timeout = 0.5 * period if timer else 1.5 * period
-        stale_s = c.config.safety.stale_periods * period
+        stale_s = (safety.gap_limit + 1.0) * period     # beyond: more samples missing than ride through
         record = c.record
         next_deadline = clock() + period
         self._last_sample = clock()         # the arming sample
@@ -485,12 +484,8 @@ class ControlLoop:
                 else:
                     age = hal.answer_age_s
                     if sample is not None and age == age:
-                        record[I_ANSWER_AGE_US] = age * 1e6
                         timing.answer_age.record(age)
-                        safety.answer_sent(age)
-                        record[I_LATE_ANSWERS] = safety.late_answers
-                        record[I_STATE] = c.state
-                        record[I_FAULT] = c.supervisor.fault
+                        c.answer_sent(age)
                 if sample is not None and record[I_INPUT_PERIOD_US] > 0:
                     timing.input_period.record(record[I_INPUT_PERIOD_US] * 1e-6)
             t3 = clock()

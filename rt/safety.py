@@ -1,6 +1,8 @@
-"""Safety, in one place: the lifecycle and its latched fault (as in ros2_control's lifecycle),
-the input checks, the counts of saturated samples, missing samples, late answers and overrun
-cycles that end in a fault, and the one ramp to bias that faults, stops and the loop's emergency exit use.
+"""Safety: the lifecycle and its latched fault (as in ros2_control's lifecycle), the names of
+the states and faults, and the Python face of the counts and the ramp that the compiled engine
+(rt/engine.py) keeps. The decisions themselves (input checks, saturation, missing samples,
+late answers, overruns, the one ramp to bias) are made in the engine, every sample, and nowhere
+else.
 
     INIT --arm--> ARMED --start--> RUNNING --fault--> FAULT --rearm--> ARMED
                                      |  \\--stop--> STOPPING --(ramp done)--> STOPPED
@@ -14,35 +16,34 @@ configured ramp time; the first fault's reason is latched until an operator re-a
 from __future__ import annotations
 
 import enum
-import math
 
 import numpy as np
 
-from beamctl.rt.config import Safety as SafetySettings
+from beamctl.rt import engine as e
 
 
 class State(enum.IntEnum):
-    INIT = 0
-    ARMED = 1
-    RUNNING = 2
-    FAULT = 3
-    STOPPING = 4
-    STOPPED = 5
+    INIT = e.S_INIT
+    ARMED = e.S_ARMED
+    RUNNING = e.S_RUNNING
+    FAULT = e.S_FAULT
+    STOPPING = e.S_STOPPING
+    STOPPED = e.S_STOPPED
 
 
 class Fault(enum.IntEnum):
-    NONE = 0
-    STRAIN_NOT_FINITE = 1
-    STRAIN_OUT_OF_RANGE = 2
-    LOAD_NOT_FINITE = 3
-    LOAD_OUT_OF_SENSOR_RANGE = 4
-    LOAD_OUT_OF_TABLE_RANGE = 5
-    STALE_INPUT = 6
-    OVERRUN_STREAK = 7
-    PERSISTENT_SATURATION = 8
-    HAL_ERROR = 9
-    OPERATOR = 10
-    LATE_ANSWERS = 11
+    NONE = e.F_NONE
+    STRAIN_NOT_FINITE = e.F_STRAIN_NOT_FINITE
+    STRAIN_OUT_OF_RANGE = e.F_STRAIN_OUT_OF_RANGE
+    LOAD_NOT_FINITE = e.F_LOAD_NOT_FINITE
+    LOAD_OUT_OF_SENSOR_RANGE = e.F_LOAD_OUT_OF_SENSOR_RANGE
+    LOAD_OUT_OF_TABLE_RANGE = e.F_LOAD_OUT_OF_TABLE_RANGE
+    STALE_INPUT = e.F_STALE_INPUT
+    OVERRUN_STREAK = e.F_OVERRUN_STREAK
+    PERSISTENT_SATURATION = e.F_PERSISTENT_SATURATION
+    HAL_ERROR = e.F_HAL_ERROR
+    OPERATOR = e.F_OPERATOR
+    LATE_ANSWERS = e.F_LATE_ANSWERS
 
 
 DESCRIPTIONS = {
@@ -52,7 +53,7 @@ DESCRIPTIONS = {
     Fault.LOAD_NOT_FINITE: "the load-cell reading is not a finite number",
     Fault.LOAD_OUT_OF_SENSOR_RANGE: "the load-cell reading is outside the sensor range",
     Fault.LOAD_OUT_OF_TABLE_RANGE: "the axial load is outside the gain table's load range",
-    Fault.STALE_INPUT: "no valid sample for too many periods of time",
+    Fault.STALE_INPUT: "more samples missing in a row than the loop rides through",
     Fault.OVERRUN_STREAK: "too many consecutive overruns of the control period",
     Fault.PERSISTENT_SATURATION: "the stack voltages stayed saturated for too long",
     Fault.HAL_ERROR: "the hardware abstraction reported an error",
@@ -66,224 +67,145 @@ class TransitionError(RuntimeError):
 
 
 class Supervisor:
-    """Holds the state and the latched fault; the controller asks it what to do."""
+    """The lifecycle state and the latched fault, as the engine holds them (``iv``), with the
+    reason in words. The controller changes them through the engine's commands."""
 
-    def __init__(self) -> None:
-        self.state = State.INIT
-        self.fault = Fault.NONE
-        self.detail = ""
-        self.fault_time = None
+    def __init__(self, safety: Safety) -> None:
+        self._safety = safety
+        self.python_detail = ""         # the detail of a fault latched from Python (a HAL error)
 
-    def _require(self, *allowed: State, action: str) -> None:
-        if self.state not in allowed:
-            raise TransitionError(f"cannot {action} in state {self.state.name} "
-                                  f"(allowed from {', '.join(s.name for s in allowed)})")
+    @property
+    def state(self) -> State:
+        return State(int(self._safety.iv[e.V_STATE]))
 
-    def arm(self) -> None:
-        self._require(State.INIT, action="arm")
-        self.state = State.ARMED
+    @property
+    def fault(self) -> Fault:
+        return Fault(int(self._safety.iv[e.V_FAULT]))
 
-    def start(self) -> None:
-        self._require(State.ARMED, action="start")
-        self.state = State.RUNNING
+    @property
+    def fault_time(self) -> float | None:
+        return None if self.fault == Fault.NONE else float(self._safety.fv[e.X_FAULT_TIME])
 
-    def rearm(self) -> None:
-        """Operator acknowledgement of a latched fault (or a new start after a stop)."""
-        self._require(State.FAULT, State.STOPPED, action="re-arm")
-        self.state = State.ARMED
-        self.fault = Fault.NONE
-        self.detail = ""
-        self.fault_time = None
-
-    def trip(self, fault: Fault, detail: str = "", time_s: float | None = None) -> bool:
-        """Enter FAULT with ``fault`` unless a fault is already latched. Returns True if this
-        call latched it."""
-        if self.state in (State.FAULT, State.STOPPED) or self.fault != Fault.NONE:
-            return False
-        self.state = State.FAULT
-        self.fault = fault
-        self.detail = detail
-        self.fault_time = time_s
-        return True
-
-    def request_stop(self) -> None:
-        if self.state in (State.RUNNING, State.ARMED, State.INIT):
-            self.state = State.STOPPING
-
-    def stopped(self) -> None:
-        if self.state == State.STOPPING:
-            self.state = State.STOPPED
+    @property
+    def detail(self) -> str:
+        """The latched fault's detail: the values the engine recorded when it tripped, or the
+        text of a fault latched from Python."""
+        fault = self.fault
+        if fault == Fault.NONE:
+            return ""
+        if self.python_detail:
+            return self.python_detail
+        iv, fv = self._safety.iv, self._safety.fv
+        value, limit = float(fv[e.X_FAULT_VALUE]), float(fv[e.X_FAULT_LIMIT])
+        channel = int(iv[e.V_FAULT_CHANNEL])
+        if fault == Fault.STRAIN_NOT_FINITE:
+            return f"strain {channel} = {value}" if channel >= 0 else "non-finite strain when starting"
+        if fault == Fault.STRAIN_OUT_OF_RANGE:
+            return f"strain {channel} = {value:.3g}, limit {limit:.3g}"
+        if fault == Fault.LOAD_NOT_FINITE:
+            return f"load = {value}"
+        if fault == Fault.LOAD_OUT_OF_SENSOR_RANGE:
+            low, high = self._safety.load_range
+            return f"load = {value:.1f} N, range [{low:g}, {high:g}] N"
+        if fault == Fault.LOAD_OUT_OF_TABLE_RANGE:
+            return (f"filtered load {value:.1f} N outside the table's [{self._safety.table_first_n:g}, "
+                    f"{limit:g}] N")
+        if fault == Fault.STALE_INPUT:
+            return f"{value:.1f} samples missing in a row; the loop rides through {limit:.0f}"
+        if fault == Fault.OVERRUN_STREAK:
+            return f"{value:.0f} overruns in a row"
+        if fault == Fault.PERSISTENT_SATURATION:
+            return f"saturated for {value:.0f} samples"
+        if fault == Fault.LATE_ANSWERS:
+            return (f"{channel} answers in a row later than {limit * 1e6:.0f} us, the last "
+                    f"{value * 1e6:.0f} us")
+        return ""
 
     def reason(self) -> str:
-        text = DESCRIPTIONS[self.fault]
-        return f"{self.fault.name}: {text}" + (f" ({self.detail})" if self.detail else "")
-
-
-class BiasRamp:
-    """The ramp to bias: linear from the voltages it begins at to the bias voltage in ``samples``
-    steps, then bias held. The one way the stacks are brought to rest (faults, stops and the
-    loop's emergency exit)."""
-
-    def __init__(self, bias_voltage: float, samples: int) -> None:
-        self.bias = np.full(6, float(bias_voltage))
-        self.samples = max(1, int(samples))
-        self._from = self.bias.copy()
-        self._step = 0
-
-    def begin(self, voltages: np.ndarray) -> None:
-        """Start a ramp from ``voltages`` (copied)."""
-        np.copyto(self._from, voltages)
-        self._step = 0
-
-    def reset(self) -> None:
-        self._step = 0
-
-    def advance(self, out: np.ndarray) -> bool:
-        """Write the ramp's next six voltages into ``out``. False while ramping (the last ramp
-        step writes bias); True from the call after it on, with bias in ``out``."""
-        if self._step < self.samples:
-            self._step += 1
-            remaining = 1.0 - self._step / self.samples
-            np.subtract(self._from, self.bias, out=out)
-            out *= remaining
-            out += self.bias
-            return False
-        out[:] = self.bias
-        return True
+        fault = self.fault
+        detail = self.detail
+        return f"{fault.name}: {DESCRIPTIONS[fault]}" + (f" ({detail})" if detail else "")
 
 
 class Safety:
-    """The controller's safety: the supervisor (state and latched fault), the checks of every
-    sample, the counts that end in a fault (saturated samples, missing samples, overrun cycles)
-    and the ramp of ``voltages``, the controller's output array, to bias.
+    """The settings and counts of the controller's safety, read from the engine's arrays; the
+    loop reports each cycle's timing here (``cycle_overran`` / ``cycle_on_time``) and the answer's
+    age (``answer_sent``)."""
 
-    The controller reports each sample (``sample_arrived`` / ``sample_missing``, ``check_inputs``,
-    ``saturation``) and the loop each cycle's timing (``cycle_overran`` / ``cycle_on_time``); a
-    fault latches in the supervisor and starts the ramp, which ``ramp_step`` advances once per
-    sample. Nothing here allocates unless it trips.
-    """
-
-    def __init__(self, settings: SafetySettings, proportional_limit_strain: float, bias_voltage: float,
-                 sample_rate_hz: float, voltages: np.ndarray) -> None:
-        self.supervisor = Supervisor()
-        self.voltages = voltages
-        self.ramp = BiasRamp(bias_voltage, round(settings.ramp_time * sample_rate_hz))
-        self.strain_limit = settings.strain_limit_fraction * proportional_limit_strain
-        self._load_low, self._load_high = settings.load_range
-        self._saturation_limit = max(1, round(settings.saturation_time * sample_rate_hz))
-        self._stale_limit = settings.stale_periods
-        self._overrun_limit = settings.overrun_streak
-        self.answer_budget_s = settings.answer_budget_periods / sample_rate_hz
-        self._late_limit = settings.late_answer_streak
-        self.late_answers = 0
-        self.late_streak = 0
-        self.time_s = 0.0                 # time stamp of the latest sample, recorded with a fault
-        self.saturated_samples = 0
-        self.missing_samples = 0
-        self.overrun_streak = 0
-        self.max_overrun_streak = 0
-
-    def clear(self) -> None:
-        """Arming: the sample counts start again and the ramp is reset (overruns are the loop's
-        and keep counting)."""
-        self.ramp.reset()
-        self.saturated_samples = 0
-        self.missing_samples = 0
-        self.late_streak = 0
-
-    # -- faults and stops -------------------------------------------------------------------------
-    def trip(self, fault: Fault, detail: str = "") -> None:
-        """Latch ``fault`` (the first one wins) and ramp the voltages to bias from where they are
-        (a stop's ramp already under way goes on)."""
-        was = self.supervisor.state
-        if self.supervisor.trip(fault, detail, self.time_s) and was != State.STOPPING:
-            self.ramp.begin(self.voltages)
-
-    def request_stop(self) -> None:
-        """Ramp to bias and stop."""
-        if self.supervisor.state in (State.RUNNING, State.ARMED, State.INIT):
-            self.ramp.begin(self.voltages)
-        self.supervisor.request_stop()
-
-    def ramp_step(self) -> None:
-        """One sample of the ramp to bias; a stop ends (STOPPED) once bias is reached."""
-        if self.ramp.advance(self.voltages) and self.supervisor.state == State.STOPPING:
-            self.supervisor.stopped()
+    def __init__(self, controller, iv: np.ndarray, fv: np.ndarray, load_range: tuple[float, float],
+                 ramp_time_s: float) -> None:
+        self._controller = controller
+        self.iv, self.fv = iv, fv
+        self.load_range = load_range
+        self.ramp_time_s = ramp_time_s
+        self.supervisor = Supervisor(self)
 
     @property
-    def at_bias(self) -> bool:
-        return bool(np.all(self.voltages == self.ramp.bias))
+    def table_first_n(self) -> float:
+        return float(self.fv[e.P_FIRST])
 
-    # -- what the controller reports each sample --------------------------------------------------
-    def sample_arrived(self, time_s: float) -> None:
-        self.missing_samples = 0
-        self.time_s = time_s
-
-    def sample_missing(self, silent_periods: float | None = None) -> None:
-        """No new sample this cycle. ``silent_periods``: the time since the last valid sample, in
-        periods, as the caller measured it; None counts one period per call (a timer-paced loop
-        ticks once a period). ``stale_periods`` of silence fault a running controller."""
-        self.missing_samples += 1
-        silent = self.missing_samples if silent_periods is None else silent_periods
-        if silent >= self._stale_limit and self.supervisor.state == State.RUNNING:
-            self.trip(Fault.STALE_INPUT, f"{silent:.1f} periods without a valid sample")
-
-    def answer_sent(self, age_s: float) -> None:
-        """The answer to the latest sample was sent ``age_s`` after the sample arrived (NaN: not
-        measured). Beyond the budget it is late; ``late_answer_streak`` late answers in a row
-        fault a running controller."""
-        if not age_s <= self.answer_budget_s:
-            if age_s != age_s:
-                return
-            self.late_answers += 1
-            self.late_streak += 1
-            if self.late_streak >= self._late_limit and self.supervisor.state == State.RUNNING:
-                self.trip(Fault.LATE_ANSWERS, f"{self.late_streak} answers in a row later than "
-                                              f"{self.answer_budget_s * 1e6:.0f} us, the last "
-                                              f"{age_s * 1e6:.0f} us")
-        else:
-            self.late_streak = 0
+    @property
+    def strain_limit(self) -> float:
+        return float(self.fv[e.P_STRAIN_LIMIT])
 
     def cap_strain_limit(self, full_scale: float, resolution: float) -> None:
         """The sensor cannot report strains beyond ``full_scale`` (it clips there): a reading
         within one ``resolution`` step of full scale is out of range too."""
-        self.strain_limit = min(self.strain_limit, full_scale - 0.5 * resolution)
+        self.fv[e.P_STRAIN_LIMIT] = min(self.strain_limit, full_scale - 0.5 * resolution)
 
-    def check_inputs(self, strains: np.ndarray, load_n: float) -> None:
-        """Fault on a non-finite strain or one beyond the strain limit, then on a load-cell value
-        that is non-finite or outside the sensor's range."""
-        limit = self.strain_limit
-        for i in range(4):
-            e = strains[i]
-            if not abs(e) <= limit:
-                if e != e or abs(e) == math.inf:
-                    self.trip(Fault.STRAIN_NOT_FINITE, f"strain {i} = {e}")
-                else:
-                    self.trip(Fault.STRAIN_OUT_OF_RANGE, f"strain {i} = {e:.3g}, limit {limit:.3g}")
-                return
-        if not self._load_low <= load_n <= self._load_high:
-            if load_n != load_n or abs(load_n) == math.inf:
-                self.trip(Fault.LOAD_NOT_FINITE, f"load = {load_n}")
-            else:
-                self.trip(Fault.LOAD_OUT_OF_SENSOR_RANGE,
-                          f"load = {load_n:.1f} N, range [{self._load_low:g}, {self._load_high:g}] N")
+    @property
+    def answer_budget_s(self) -> float:
+        return float(self.fv[e.P_BUDGET_S])
 
-    def saturation(self, saturated: bool) -> None:
-        """A saturated allocation this sample; ``saturation_time`` of them in a row faults."""
-        if saturated:
-            self.saturated_samples += 1
-            if self.saturated_samples >= self._saturation_limit:
-                self.trip(Fault.PERSISTENT_SATURATION, f"saturated for {self.saturated_samples} samples")
-        else:
-            self.saturated_samples = 0
+    @property
+    def gap_limit(self) -> int:
+        """Samples missing in a row that the loop rides through (more: STALE_INPUT)."""
+        return int(self.iv[e.V_GAP_LIMIT])
 
-    # -- what the loop reports each cycle -----------------------------------------------------------
+    @property
+    def late_limit(self) -> int:
+        """Late answers in a row that the loop rides through (more: LATE_ANSWERS)."""
+        return int(self.iv[e.V_LATE_LIMIT])
+
+    @property
+    def late_answers(self) -> int:
+        return int(self.iv[e.V_LATE_TOTAL])
+
+    @property
+    def late_streak(self) -> int:
+        return int(self.iv[e.V_LATE_STREAK])
+
+    @property
+    def saturated_samples(self) -> int:
+        return int(self.iv[e.V_SATURATED])
+
+    @property
+    def bridged_samples(self) -> int:
+        """Samples bridged by the estimator's prediction since the controller was built."""
+        return int(self.iv[e.V_BRIDGED])
+
+    @property
+    def longest_gap(self) -> int:
+        return int(self.iv[e.V_MAX_GAP])
+
+    @property
+    def max_overrun_streak(self) -> int:
+        return int(self.iv[e.V_OVERRUN_MAX])
+
+    @property
+    def overrun_streak(self) -> int:
+        return int(self.iv[e.V_OVERRUN_STREAK])
+
+    @property
+    def at_bias(self) -> bool:
+        return bool(np.all(self._controller.voltages == self.fv[e.P_BIAS]))
+
+    def answer_sent(self, age_s: float) -> None:
+        self._controller.answer_sent(age_s)
+
     def cycle_overran(self) -> None:
         """A cycle ended after its deadline; ``overrun_streak`` of them in a row fault."""
-        self.overrun_streak += 1
-        self.max_overrun_streak = max(self.max_overrun_streak, self.overrun_streak)
-        if self.overrun_streak >= self._overrun_limit:
-            self.trip(Fault.OVERRUN_STREAK, f"{self.overrun_streak} overruns in a row")
+        self._controller._command(e.C_OVERRAN)
 
     def cycle_on_time(self) -> None:
-        self.overrun_streak = 0
+        self._controller._command(e.C_ON_TIME)

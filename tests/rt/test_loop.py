@@ -377,11 +377,13 @@ def test_sample_pacing_answers_every_sample_once_and_holds_through_a_missing_one
 
 
 def test_the_stale_input_fault_comes_after_stale_periods_of_time_not_of_read_time_outs(table):
-    """The DAQ falls silent while the controller runs: the fault is due once five periods of
-    time have passed without a sample, not after five read time-outs of 1.5 periods each
-    (7.5 periods). The loop's clock moves only by the HAL's time-outs here."""
+    """The DAQ falls silent while the controller runs: with five missing samples ridden through,
+    the fault is due once six periods of time have passed without a sample (the sixth sample is
+    missing), not after six read time-outs of 1.5 periods each (9 periods). The loop's clock
+    moves only by the HAL's time-outs here."""
     clock = FakeClock(tick=0.0)
-    config = controller_config({"start_ramp_time_s": 0.0, "safety": {"ramp_time_s": RAMP_TIME}})
+    config = controller_config({"start_ramp_time_s": 0.0, "safety": {"ramp_time_s": RAMP_TIME,
+                                                                     "stale_periods": 5}})
     controller = Controller(table, config)
     hal = ScriptedHal(2500.0, [DEFLECTED] * 200 + [None] * 40, sleep=clock.sleep).open()
     silent_at_fault, last_sample = [], [clock()]
@@ -395,20 +397,22 @@ def test_the_stale_input_fault_comes_after_stale_periods_of_time_not_of_read_tim
     loop = ControlLoop(controller, hal, clock=clock, on_cycle=watch)
     result = _run(loop)
     assert result.fault == Fault.STALE_INPUT.name, result.reason
-    assert 5.0 <= silent_at_fault[0] <= 5.1 + 1e-9, (
-        f"fault after {silent_at_fault[0]:.2f} periods without a sample; due after 5")
+    assert 6.0 <= silent_at_fault[0] <= 6.1 + 1e-9, (
+        f"fault after {silent_at_fault[0]:.2f} periods without a sample; due after 6")
 
 
 def test_a_streak_of_late_answers_faults_and_every_late_answer_is_counted(tmp_path, table):
-    """Answers sent 0.6 periods after their sample against a budget of 0.5: three isolated late
-    answers are counted, the fourth streak of ten in a row faults."""
-    late = {50, 80, 81} | set(range(300, 310))
+    """Answers sent 0.6 periods after their sample against a budget of 0.5 with ten late answers
+    in a row ridden through: three isolated late answers are counted, the eleventh of a streak
+    faults."""
+    late = {50, 80, 81} | set(range(300, 311))
 
     def age(sequence):
         return 0.6 / 2500.0 if sequence in late else 0.1 / 2500.0
 
     config = controller_config({"start_ramp_time_s": 0.0,
-                                "safety": {"ramp_time_s": RAMP_TIME, "late_answer_streak": 10}})
+                                "safety": {"ramp_time_s": RAMP_TIME, "late_answer_streak": 10,
+                                           "answer_budget_periods": 0.5}})
     controller = Controller(table, config)
     hal = ScriptedHal(2500.0, default=oscillating, answer_ages_s=age).open()
     telemetry = TelemetryWriter.for_controller(tmp_path / "late.btl", controller).start()
@@ -418,10 +422,10 @@ def test_a_streak_of_late_answers_faults_and_every_late_answer_is_counted(tmp_pa
     sequence = records[:, COL["sequence"]]
     ages = records[:, COL["answer_age_us"]]
     faulted_at = int(sequence[np.argmax(records[:, COL["fault"]] != 0)])
-    assert faulted_at == 309, f"the tenth late answer in a row (sample 309) faults, not {faulted_at}"
+    assert faulted_at == 310, f"the eleventh late answer in a row (sample 310) faults, not {faulted_at}"
     late_rows = np.isin(sequence, sorted(late))
     np.testing.assert_allclose(ages[late_rows], 240.0, rtol=1e-9, err_msg="late answers' ages (us)")
-    assert records[sequence == 309, COL["late_answers"]][0] == 13
+    assert records[sequence == 310, COL["late_answers"]][0] == 14
     assert result.timing["answer_age"]["count"] == int(np.isfinite(ages).sum())
 
 

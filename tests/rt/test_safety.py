@@ -9,7 +9,7 @@ from beamctl.hal.base import Sample
 from beamctl.rt.config import controller_config
 from beamctl.rt.controller import Controller
 from beamctl.rt.loop import ControlLoop
-from beamctl.rt.safety import BiasRamp, Fault, State
+from beamctl.rt.safety import Fault, State
 from tests.rt.fakes import ScriptedHal
 
 
@@ -18,19 +18,21 @@ def table():
     return load_table(paper_table_path())
 
 
-def test_the_ramp_reaches_bias_linearly_in_its_samples_and_then_holds_it():
-    ramp = BiasRamp(75.0, 4)
-    start = np.array([150.0, 0.0, 75.0, 100.0, 50.0, 80.0])
-    ramp.begin(start)
-    out = np.empty(6)
+def test_the_ramp_reaches_bias_linearly_in_its_samples_and_then_holds_it(table):
+    """A fault ramps from the voltages it met to bias in ramp_time x rate samples, linearly,
+    then holds bias (the engine's one ramp)."""
+    c = _driving(table)
+    start = c.voltages.copy()
+    c.fault(Fault.OPERATOR, "test")
     steps = []
-    while not ramp.advance(out):
-        steps.append(out.copy())
-    assert len(steps) == 4, "four ramp samples, then done"
-    np.testing.assert_allclose(steps, [75.0 + (start - 75.0) * (1 - k / 4) for k in (1, 2, 3, 4)],
-                               rtol=1e-15)
+    while not c.at_bias:
+        steps.append(c.step(None).copy())
+    n = round(0.02 * c.sample_rate_hz)
+    assert len(steps) == n, f"{n} ramp samples, then at bias"
+    np.testing.assert_allclose(steps, [75.0 + (start - 75.0) * (1 - k / n) for k in range(1, n + 1)],
+                               rtol=1e-12)
     np.testing.assert_array_equal(steps[-1], 75.0)
-    assert ramp.advance(out) and np.all(out == 75.0), "after the ramp, bias is held"
+    assert np.all(c.step(None) == 75.0), "after the ramp, bias is held"
 
 
 def _driving(table):
