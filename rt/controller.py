@@ -130,6 +130,50 @@ def _stacked(blocks: list[np.ndarray]) -> np.ndarray:
     return np.concatenate([np.ascontiguousarray(b).ravel() for b in blocks])
 
 
+# the signal vector's entries of each bending plane: its two strains, integrals, applied forces
+PLANE_SIGNALS = {"y": [0, 2, 4, 6, 8, 10], "z": [1, 3, 5, 7, 9, 11]}
+PLANE_OUTPUTS = {"y": [0, 2], "z": [1, 3]}
+
+
+def plane_split(compensator, blocks: dict[str, list[np.ndarray]]) -> int | None:
+    """The number of plane-y states when the compensator's planes do not couple and plane y's
+    states come first (the engine then runs each product per plane, ``engine.V_SPLIT``), else
+    None. ``blocks``: the schedule's [M_i; S_i] blocks of each product ("out", "upd", "pred"),
+    checked to vanish outside the planes' own rows and columns at every grid point."""
+    n = compensator.n_states
+    ys, zs = list(compensator.plane_states["y"]), list(compensator.plane_states["z"])
+    ny = len(ys)
+    if ys != list(range(ny)) or zs != list(range(ny, n)) or ny == 0 or ny == n:
+        return None
+    rows = {"out": PLANE_OUTPUTS, "upd": {"y": list(range(ny)), "z": list(range(ny, n))},
+            "pred": PLANE_OUTPUTS}
+    for key, stacked in blocks.items():
+        for block in stacked:
+            half = block.shape[0] // 2
+            for m in (block[:half], block[half:]):
+                mask = np.ones_like(m, dtype=bool)
+                for p in ("y", "z"):
+                    states = ys if p == "y" else zs
+                    cols = states if key == "pred" else PLANE_SIGNALS[p] + [12 + i for i in states]
+                    mask[np.ix_(rows[key][p], cols)] = False
+                if np.any(m[mask] != 0.0):
+                    return None
+    return ny
+
+
+def plane_blocks(stacked: list[np.ndarray], key: str, ny: int, n: int) -> np.ndarray:
+    """The blocks of ``plane_split`` per plane: plane y's [M_i; S_i] of its rows and columns for
+    every grid point, then plane z's, flat (the engine's order)."""
+    out = []
+    for p, states in (("y", list(range(ny))), ("z", list(range(ny, n)))):
+        rows = states if key == "upd" else PLANE_OUTPUTS[p]
+        cols = states if key == "pred" else PLANE_SIGNALS[p] + [12 + i for i in states]
+        for block in stacked:
+            half = block.shape[0] // 2
+            out.append(np.vstack([block[:half][np.ix_(rows, cols)], block[half:][np.ix_(rows, cols)]]).ravel())
+    return np.concatenate(out)
+
+
 def ride_through_limits(table: GainTable, config: ControllerConfig) -> tuple[int, int, float]:
     """(samples missing in a row, late answers in a row, answer budget in periods) that the
     loop rides through: the table's ride-through analysis (stored with the table when it was
@@ -231,17 +275,24 @@ class Controller:
         schedule = GainSchedule.from_table(table)
         n = comp.n_states
         predict = getattr(comp, "predict", None)
+        blocks = {"out": schedule._output_blocks, "upd": schedule._update_blocks}
+        if predict is not None:
+            blocks["pred"] = GainSchedule.stacked_blocks(predict, table.loads_n)
+        ny = plane_split(comp, blocks)
+        if ny is None:
+            flat = {key: _stacked(b) for key, b in blocks.items()}
+        else:
+            flat = {key: plane_blocks(b, key, ny, n) for key, b in blocks.items()}
         parts = {
             "c0": np.asarray(table.c0_phi_inv, dtype=float),
             "th": self.period * np.asarray(comp.h, dtype=float),            # T H
             "force": self._force_matrix,
             "coef": self.allocator.coefficients,
             "loads": np.asarray(table.loads_n, dtype=float),
-            "out": _stacked(schedule._output_blocks),
-            "upd": _stacked(schedule._update_blocks),
+            "out": flat["out"],
+            "upd": flat["upd"],
             "int": _stacked(schedule._integral_blocks),
-            "pred": (_stacked(GainSchedule.stacked_blocks(predict, table.loads_n)) if predict is not None
-                     else np.zeros(0)),
+            "pred": flat.get("pred", np.zeros(0)),
             "start": np.asarray(comp.start, dtype=float),
             "exc": self._excitation if self._excitation is not None else np.zeros(0),
         }
@@ -259,6 +310,8 @@ class Controller:
         put(e.V_N_LOADS, len(table.loads_n))
         put(e.V_N_X, n)
         put(e.V_PREDICT, 1 if predict is not None else 0)
+        put(e.V_SPLIT, 0 if ny is None else 1)
+        put(e.V_NY, 0 if ny is None else ny)
         for slot, key in ((e.O_C0, "c0"), (e.O_TH, "th"), (e.O_FORCE, "force"), (e.O_COEF, "coef"),
                           (e.O_LOADS, "loads"), (e.O_OUT, "out"), (e.O_UPD, "upd"), (e.O_INT, "int"),
                           (e.O_PRED, "pred"), (e.O_START, "start"), (e.O_EXC, "exc")):
