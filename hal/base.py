@@ -6,9 +6,10 @@ narrow set of hooks (``_open``, ``_read``, ``_write``, ``_close``). Backends are
 name and imported lazily (``hal.create``), so the simulated plant never needs a CAN
 library, and nothing ever falls back from the DAQ to the plant.
 
-One ``read()`` returns one sample: time stamp, sequence number, the four strains
-(eps_y1, eps_z1, eps_y2, eps_z2) and the axial load. ``write()`` takes the six stack
-voltages (a1, a2, a3 at support A, b1, b2, b3 at support B).
+One ``read()`` returns one sample: time stamp, sequence number, the samples of the source
+skipped since the previous one, the four strains (eps_y1, eps_z1, eps_y2, eps_z2) and the axial
+load. ``write()`` takes the six stack voltages (a1, a2, a3 at support A, b1, b2, b3 at
+support B).
 """
 
 from __future__ import annotations
@@ -40,13 +41,22 @@ class HalProtocolError(HalError):
 
 class Sample:
     """One sensor sample. Backends fill one instance in place on each read: it is valid until
-    the next ``read()`` (copy what must outlive it)."""
+    the next ``read()`` (copy what must outlive it).
 
-    __slots__ = ("timestamp", "sequence", "strains", "axial_load")
+    ``missed`` is the number of samples of the source skipped between the previous sample
+    delivered and this one: sampled by the source but never delivered (lost on the way, or
+    dropped as invalid), which the controller bridges by its estimator's prediction. It is 0
+    for samples in order and for the first sample after ``open``; the ``sim`` backend never skips
+    one; the ``can`` backend counts the counter values a forward jump of the DAQ_Strains
+    ``sequence`` skipped (the jump minus one), and 0 after a resynchronisation to a new stream,
+    where the counter cannot tell (hal/e2e.py; the time stamp tells the gap)."""
+
+    __slots__ = ("timestamp", "sequence", "missed", "strains", "axial_load")
 
     def __init__(self) -> None:
         self.timestamp = 0.0          # s, backend clock (plant time or receive time)
         self.sequence = -1            # rolling counter of the source
+        self.missed = 0               # samples of the source skipped since the previous one (0: in order)
         self.strains = np.zeros(4)    # eps_y1, eps_z1, eps_y2, eps_z2
         self.axial_load = 0.0         # N, load cell
 
@@ -71,8 +81,9 @@ class HalBase(abc.ABC):
         self.writes = 0
         self._sample = Sample()
         self.state_code = self.fault_code = self.flags_code = 0
-        # seconds from the arrival of the sample the last write answered to that write's send
-        # call, for backends that can measure it (NaN: not measured)
+        # seconds from the arrival of the sample the last write answered to that write's frame
+        # having been sent (the send returned), for backends that can measure it (NaN: not
+        # measured)
         self.answer_age_s = float("nan")
         # the largest strain the hardware can report (a reading there may be clipped); None: no
         # such limit

@@ -1,9 +1,12 @@
 """The DBC contract with the DAQ firmware, loaded once and compiled into codecs.
 
-Each message becomes a ``FrameCodec``: shifts, masks and scales derived from the DBC signal
-definitions, so decoding a frame in the loop is integer arithmetic on one ``int`` (no DBC
-parsing, no dict building). Every message of the contract carries end-to-end protection
-(hal/e2e.py): ``encode`` fills its ``crc`` byte, ``crc_ok`` checks it. Tests check the codecs
+Each message becomes a ``FrameCodec``: its plan, integer and float arrays derived from the DBC
+signal definitions (start bit, length, signedness; scale, offset, range) and its Data ID, which
+the compiled arithmetic of hal/frames.py runs on (numba; no DBC parsing, no dict building, no
+Python object per frame). Every message of the contract carries end-to-end protection
+(hal/e2e.py): the DBC gives each a 16-bit ``DataID`` of its own, ``encode`` fills the ``crc``
+byte, ``crc_ok`` checks it. ``FrameCodec``'s methods are the Python face of that one compiled
+implementation (the CAN backend calls it directly, hal/can_backend.py). Tests check the codecs
 against cantools on random values.
 """
 
@@ -14,9 +17,11 @@ from importlib import resources
 from pathlib import Path
 
 import cantools
+import numpy as np
 
+from beamctl.hal import frames
 from beamctl.hal.base import HalConfigurationError
-from beamctl.hal.e2e import frame_crc
+from beamctl.hal.e2e import _bytes
 
 STRAIN_SIGNALS = ("strain_y1", "strain_z1", "strain_y2", "strain_z2")
 VOLTAGE_SIGNALS = ("voltage_a1", "voltage_a2", "voltage_a3", "voltage_b1", "voltage_b2", "voltage_b3")
@@ -27,6 +32,8 @@ MESSAGES = {
     "status": ("CTRL_Status", ("state", "fault", "flags", "sequence", "crc")),
 }
 DEFAULT_DBC = "beamctl.dbc"
+DATA_ID_ATTRIBUTE = "DataID"
+DATA_ID_MAX = 0xFFFF
 
 
 def default_dbc_path() -> Path:
@@ -49,12 +56,21 @@ class SignalCodec:
         return (1 << self.length) - 1
 
 
+def _whole_byte(codec_name: str, s: SignalCodec, what: str) -> None:
+    if s.signed or s.scale != 1 or s.offset != 0 or (what == "crc" and (s.length != 8 or s.start % 8)):
+        shape = ("one whole unsigned byte (start a multiple of 8, length 8, scale 1, offset 0)"
+                 if what == "crc" else "an unsigned counter (scale 1, offset 0)")
+        raise HalConfigurationError(f"DBC message {codec_name}: signal {what} must be {shape}")
+
+
 class FrameCodec:
     """Encode/decode one message. ``decode_into(data, out)`` writes the physical values of
-    the signals in DBC order into ``out`` (a list) and returns False when a value lies outside
-    the DBC range; ``encode(values)`` returns the frame bytes (ValueError when out of range),
-    with the CRC computed into the ``crc`` byte whatever value ``values`` gives it;
-    ``crc_ok(data)`` checks a received frame's CRC."""
+    the signals in DBC order into ``out`` (a list or a float array) and returns False when a
+    value lies outside the DBC range; ``encode(values)`` returns the frame bytes (ValueError
+    when out of range), with the CRC computed into the ``crc`` byte whatever value ``values``
+    gives it; ``crc_ok(data)`` checks a received frame's CRC; ``reject(msg, out)`` validates a
+    received python-can message. All four run the compiled arithmetic of hal/frames.py on the
+    plan (``plan_int``, ``plan_float``)."""
 
     def __init__(self, message: cantools.database.Message) -> None:
         self.name = message.name
@@ -74,20 +90,58 @@ class FrameCodec:
             self.signals.append(SignalCodec(s.name, s.start, s.length, s.is_signed, float(s.scale),
                                             float(s.offset), lo, hi))
         self.names = [s.name for s in self.signals]
-        self.sequence_modulus = 1 << self.signals[self.names.index("sequence")].length \
-            if "sequence" in self.names else 0
+        for s in self.signals:
+            bits = frames.MAX_SIGNAL_BITS
+            if not 1 <= s.length <= bits or s.start < 0 or s.start + s.length > 8 * self.length:
+                raise HalConfigurationError(
+                    f"DBC message {message.name}: signal {s.name} (bits {s.start}..{s.start + s.length - 1}) "
+                    f"must lie within its {self.length} bytes and have 1 to {bits} bits")
+            if not (s.scale != 0 and np.isfinite(s.scale) and np.isfinite(s.offset)):
+                raise HalConfigurationError(f"DBC message {message.name}: signal {s.name} has scale "
+                                            f"{s.scale} and offset {s.offset}; expected finite numbers, a "
+                                            f"scale not 0")
+        self.sequence_modulus = 0
+        if "sequence" in self.names:
+            sequence = self.signals[self.names.index("sequence")]
+            _whole_byte(message.name, sequence, "sequence")
+            self.sequence_modulus = 1 << sequence.length
         self.crc_byte = None
+        self.data_id = None
         if "crc" in self.names:
             crc = self.signals[self.names.index("crc")]
-            if crc.length != 8 or crc.start % 8 or crc.signed or crc.scale != 1 or crc.offset != 0:
-                raise HalConfigurationError(f"DBC message {message.name}: signal crc must be one whole "
-                                            f"unsigned byte (start a multiple of 8, length 8, scale 1)")
+            _whole_byte(message.name, crc, "crc")
             self.crc_byte = crc.start // 8
-            if self.crc_byte >= self.length:
-                raise HalConfigurationError(f"DBC message {message.name}: crc lies outside its "
-                                            f"{self.length} bytes")
-        self._plan = [(s.start, s.mask, (1 << (s.length - 1)) if s.signed else 0, 1 << s.length,
-                       s.scale, s.offset, s.minimum, s.maximum) for s in self.signals]
+            data_id = self.attributes.get(DATA_ID_ATTRIBUTE)
+            if data_id is None:
+                raise HalConfigurationError(
+                    f"DBC message {message.name}: no {DATA_ID_ATTRIBUTE} attribute; a message with a crc "
+                    f"needs a 16-bit Data ID of its own "
+                    f"(BA_ \"{DATA_ID_ATTRIBUTE}\" BO_ {message.frame_id} <0..65535>;)")
+            if not (isinstance(data_id, int) and 0 <= data_id <= DATA_ID_MAX):
+                raise HalConfigurationError(f"DBC message {message.name}: {DATA_ID_ATTRIBUTE} {data_id!r} "
+                                            f"is not a 16-bit value (0..65535)")
+            self.data_id = int(data_id)
+        self.plan_int, self.plan_float = self._plan()
+        self._values = np.zeros(len(self.signals))
+        self._buffer = np.zeros(max(self.length, 1), dtype=np.uint8)
+
+    def _plan(self) -> tuple[np.ndarray, np.ndarray]:
+        """The plan the compiled functions run on (layout: hal/frames.py, ``P_*``)."""
+        n = len(self.signals)
+        ints = np.zeros(frames.P_FIRST + frames.SIGNAL_INTS * n, dtype=np.int64)
+        floats = np.zeros(frames.SIGNAL_FLOATS * n)
+        ints[frames.P_ID] = self.frame_id
+        ints[frames.P_LENGTH] = self.length
+        ints[frames.P_CRC_BYTE] = -1 if self.crc_byte is None else self.crc_byte
+        ints[frames.P_CRC_SIGNAL] = self.names.index("crc") if "crc" in self.names else -1
+        ints[frames.P_DATA_ID] = self.data_id or 0
+        ints[frames.P_SIGNALS] = n
+        ints[frames.P_SEQUENCE] = self.names.index("sequence") if "sequence" in self.names else -1
+        for k, s in enumerate(self.signals):
+            p, q = frames.P_FIRST + frames.SIGNAL_INTS * k, frames.SIGNAL_FLOATS * k
+            ints[p:p + 3] = s.start, s.length, int(s.signed)
+            floats[q:q + 4] = s.scale, s.offset, s.minimum, s.maximum
+        return ints, floats
 
     def index(self, name: str) -> int:
         return self.names.index(name)
@@ -96,60 +150,58 @@ class FrameCodec:
         """Positions of ``names`` among this message's signals (decided once, used per frame)."""
         return [self.names.index(n) for n in names]
 
-    def decode_into(self, data: bytes | bytearray, out: list) -> bool:
-        word = int.from_bytes(data, "little")
-        ok = True
-        for i, (start, mask, sign, span, scale, offset, lo, hi) in enumerate(self._plan):
-            raw = (word >> start) & mask
-            if sign and raw & sign:
-                raw -= span
-            value = raw * scale + offset
-            if value < lo or value > hi:
-                ok = False
-            out[i] = value
+    def _out(self, out) -> None:
+        out[:len(self.signals)] = self._values.tolist()
+
+    def decode_into(self, data: bytes | bytearray, out) -> bool:
+        ok = bool(frames.decode(self.plan_int, self.plan_float, _bytes(data), len(data), self._values))
+        self._out(out)
         return ok
 
-    def reject(self, msg, out: list) -> str | None:
+    def reject(self, msg, out) -> str | None:
         """Validate a received frame of this message and decode it into ``out``: None when it
         is good, else the kind of fault, the name of its counter: ``extended_ids``,
         ``remote_frames``, ``wrong_length``, ``crc_errors``, ``out_of_range``."""
-        if msg.is_extended_id:
-            return "extended_ids"
-        if msg.is_remote_frame:
-            return "remote_frames"
+        flags = ((frames.EXTENDED_ID if msg.is_extended_id else 0)
+                 | (frames.REMOTE_FRAME if msg.is_remote_frame else 0))
         data = msg.data
-        if msg.dlc != self.length or len(data) != self.length:
-            return "wrong_length"
-        if not self.crc_ok(data):
-            return "crc_errors"
-        if not self.decode_into(data, out):
-            return "out_of_range"
-        return None
+        code = frames.validate(self.plan_int, self.plan_float, flags, msg.dlc, _bytes(data), len(data),
+                               self._values)
+        if code in (frames.R_OK, frames.R_RANGE):
+            self._out(out)
+        return frames.REJECT_NAMES[code]
 
     def crc_ok(self, data: bytes | bytearray) -> bool:
         """The frame's CRC byte is right (always True for a message without one)."""
         if self.crc_byte is None:
             return True
-        return data[self.crc_byte] == frame_crc(self.frame_id, data, self.crc_byte)
+        if len(data) <= self.crc_byte:
+            return False
+        crc = frames.frame_crc(self.data_id, _bytes(data), len(data), self.crc_byte)
+        return data[self.crc_byte] == crc
 
     def encode(self, values) -> bytes:
-        word = 0
-        for (start, mask, _sign, _span, scale, offset, lo, hi), value, s in zip(
-                self._plan, values, self.signals, strict=True):
-            if s.name == "crc":
-                continue
-            if not lo <= value <= hi:
-                raise ValueError(f"{self.name}.{s.name} = {value!r} outside the DBC range [{lo}, {hi}]")
-            raw = round((value - offset) / scale)
-            word |= (raw & mask) << start
-        data = bytearray(word.to_bytes(self.length, "little"))
-        if self.crc_byte is not None:
-            data[self.crc_byte] = frame_crc(self.frame_id, data, self.crc_byte)
-        return bytes(data)
+        values = list(values)
+        if len(values) != len(self.signals):
+            raise ValueError(f"{self.name}: {len(values)} values for {len(self.signals)} signals")
+        try:
+            array = np.array(values, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"{self.name}: values {values!r} are not all numbers") from None
+        code = frames.encode(self.plan_int, self.plan_float, array, self._buffer)
+        if code:
+            s = self.signals[code - 1]
+            raise ValueError(f"{self.name}.{s.name} = {values[code - 1]!r} outside the DBC range "
+                             f"[{s.minimum}, {s.maximum}]")
+        return self._buffer[:self.length].tobytes()
 
 
 class Contract:
-    """The shipped (or a configured) DBC: the four messages the HAL needs, compiled."""
+    """The shipped (or a configured) DBC: the four messages the HAL needs, compiled. Their plans
+    are the rows of ``plan_int`` and ``plan_float`` (in ``MESSAGES`` order, ``ROWS``), which each
+    codec's plan is a view of."""
+
+    ROWS = {role: row for row, role in enumerate(MESSAGES)}
 
     def __init__(self, path: str | Path | None = None) -> None:
         self.path = Path(path) if path else default_dbc_path()
@@ -169,11 +221,38 @@ class Contract:
             if message.is_extended_frame:
                 raise HalConfigurationError(f"DBC {self.path}: {message_name} has an extended (29-bit) "
                                             f"identifier; the contract uses standard 11-bit identifiers")
-            self.codecs[role] = FrameCodec(message)
+            try:
+                self.codecs[role] = FrameCodec(message)
+            except HalConfigurationError as exc:
+                raise HalConfigurationError(f"DBC {self.path}: {str(exc).removeprefix('DBC ')}") from None
+        seen_ids: dict[int, str] = {}
+        seen_data_ids: dict[int, str] = {}
+        for codec in self.codecs.values():
+            if codec.frame_id in seen_ids:
+                raise HalConfigurationError(f"DBC {self.path}: {codec.name} and {seen_ids[codec.frame_id]} "
+                                            f"share the identifier 0x{codec.frame_id:X}")
+            seen_ids[codec.frame_id] = codec.name
+            if codec.data_id in seen_data_ids:
+                raise HalConfigurationError(
+                    f"DBC {self.path}: {codec.name} has the {DATA_ID_ATTRIBUTE} 0x{codec.data_id:04X} of "
+                    f"{seen_data_ids[codec.data_id]}; each message of the contract needs a Data ID of its "
+                    f"own")
+            seen_data_ids[codec.data_id] = codec.name
         self.strains = self.codecs["strains"]
         self.load = self.codecs["load"]
         self.voltages = self.codecs["voltages"]
         self.status = self.codecs["status"]
+        # one plan for the contract, each codec's a row of it
+        codecs = [self.codecs[role] for role in MESSAGES]
+        self.plan_int = np.zeros((len(codecs), max(c.plan_int.size for c in codecs)), dtype=np.int64)
+        self.plan_float = np.zeros((len(codecs), max(max(c.plan_float.size for c in codecs), 1)))
+        for row, codec in enumerate(codecs):
+            ints, floats = codec.plan_int, codec.plan_float
+            self.plan_int[row, :ints.size] = ints
+            self.plan_float[row, :floats.size] = floats
+            codec.plan_int = self.plan_int[row, :ints.size]
+            codec.plan_float = self.plan_float[row, :floats.size]
+        self.max_signals = max(len(c.signals) for c in codecs)
         # the DAQ's duty when the controller falls silent (CTRL_Voltages attributes)
         self.silence_timeout_s = float(self.voltages.attributes.get("SilenceTimeoutMs", 0)) / 1e3
         self.fallback_ramp_s = float(self.voltages.attributes.get("FallbackRampMs", 0)) / 1e3

@@ -2,7 +2,8 @@
 
 Each sample it sends ``DAQ_Strains`` (and every ``SampleDivisor`` samples ``DAQ_Load``, before
 the strains), then applies the latest valid ``CTRL_Voltages`` it received and advances the
-plant one sample. It keeps the DAQ's side of the contract (hal/beamctl.dbc): a voltage frame is
+plant one sample. It keeps the DAQ's side of the contract (hal/beamctl.dbc), with the
+controller's codecs (hal/dbc.py: the CRC over each message's Data ID): a voltage frame is
 applied only if it is a standard data frame of the right length with a good CRC and a new
 sequence, everything else is counted and dropped (a voltage frame's sequence names the sample it
 answers: the DAQ knows which samples it sent, so "new" means an answer to a sample of the last

@@ -21,13 +21,24 @@ removes it on ``shutdown()``. A bus that joins rewrites the channel's ``generati
 (8 bytes, mapped into every member), so the others re-read the member list before their
 next send: a bus receives every frame sent after its constructor returned. Members that
 went away (shut down, or killed and left a socket file behind) are dropped, and their stale
-files removed, when a send to them fails.
+files removed, when a send to them, or connecting to them, fails.
 
 A receiver's queue is short: Linux holds ``net.unix.max_dgram_qlen`` datagrams (10 by
 default) per receiving socket. Sends never wait: a frame for a full queue is dropped and
 counted in the sender's ``dropped``, as a CAN bus loses frames to a node that does not
 read. A receiver that must not lose frames reads at least as fast as frames arrive (the
 emulator's ``lockstep`` pace keeps one sample in flight).
+
+A bus sends through one datagram socket per member, connected to that member's socket (a
+connected socket's send skips the path lookup of ``sendto``, about half its cost).
+
+Besides python-can's ``send``/``recv``, a fast path moves the datagrams themselves, without a
+``can.Message`` per frame (the CAN backend uses it, hal/can_backend.py): ``recv_raw_into``
+receives the next frame's datagram into a buffer of the caller's, ``raw_frame`` makes a datagram
+of this bus for a frame that the caller fills in, and ``send_raw`` stamps and sends it. The
+layout of a datagram: ``HEADER`` (version, flags, DLC, data length, arbitration identifier,
+sender, send time), the ``RAW_*`` offsets of its fields, then the data (``RAW_DATA``; padded to
+``MAX_DATA_BYTES``). The fast path bypasses python-can's software filters (``set_filters``).
 
 Usage, in any process once beamctl is installed (python-can finds the interface through the
 ``can.interface`` entry point)::
@@ -63,6 +74,14 @@ HEADER = struct.Struct("<BBBBIId")
 FRAME = struct.Struct(HEADER.format + f"{MAX_DATA_BYTES}s")
 
 EXTENDED_ID, REMOTE_FRAME, ERROR_FRAME, FD_FRAME, BITRATE_SWITCH, ERROR_STATE_INDICATOR = 1, 2, 4, 8, 16, 32
+
+# the byte offsets of HEADER's fields in a datagram, and of the data after it
+RAW_VERSION, RAW_FLAGS, RAW_DLC, RAW_LENGTH, RAW_ID, RAW_SENDER, RAW_TIME = (
+    struct.calcsize(HEADER.format[:i]) for i in range(1, len(HEADER.format)))
+RAW_DATA = HEADER.size
+RAW_SIZE = FRAME.size               # every datagram's size
+RAW_BUFFER_SIZE = FRAME.size + 1    # a receive buffer: one byte more, so a longer datagram shows as too long
+SEND_TIME = struct.Struct("<d")
 
 QUEUE_FULL_ERRNOS = frozenset({errno.EAGAIN, errno.ENOBUFS})       # the receiver's queue is full
 PEER_GONE_ERRNOS = frozenset({errno.ECONNREFUSED, errno.ENOENT})   # a stale socket file, a removed one
@@ -142,6 +161,8 @@ class LocalBus(can.BusABC):
         self.dropped = 0
         self.malformed = 0
         self._sock: socket.socket | None = None
+        self._links: dict[bytes, socket.socket] = {}     # member's socket path -> a socket connected to it
+        self._peers: tuple[tuple[bytes, socket.socket], ...] = ()
         self._path: bytes | None = None
         self._generation: mmap.mmap | None = None
         try:
@@ -170,7 +191,7 @@ class LocalBus(can.BusABC):
             self._path, self._owner_pid = path, os.getpid()
             self._generation[:] = os.urandom(8)      # a new generation: the members re-read the list
             self._rescan()
-            self._rx = bytearray(FRAME.size + 1)     # one byte more: a longer datagram shows as too long
+            self._rx = bytearray(RAW_BUFFER_SIZE)
             self._poll = select.poll()
             self._poll.register(sock, select.POLLIN)
             self._readers = (sock,)
@@ -184,8 +205,9 @@ class LocalBus(can.BusABC):
     # -- members -------------------------------------------------------------------------------------
     def _rescan(self) -> None:
         """Read the member list: every socket in the channel directory but this bus's own (and
-        its own too with ``receive_own_messages``). The generation is read first, so a member
-        joining during the scan makes the next send scan again."""
+        its own too with ``receive_own_messages``), each with a socket connected to it. The
+        generation is read first, so a member joining during the scan makes the next send scan
+        again. A socket file nobody is bound to (its process was killed) is removed."""
         self._seen_generation = self._generation[:]
         own = None if self.receive_own_messages else self._own_name
         try:
@@ -194,15 +216,42 @@ class LocalBus(can.BusABC):
             raise can.CanOperationError(f"local bus: cannot list the channel directory "
                                         f"{os.fsdecode(self._directory)}: {exc.strerror}",
                                         exc.errno) from None
-        self._peers = tuple(os.path.join(self._directory, name) for name in names
-                            if name.endswith(SOCKET_SUFFIX) and name != own)
+        old, links = self._links, {}
+        for name in names:
+            if not name.endswith(SOCKET_SUFFIX) or name == own:
+                continue
+            path = os.path.join(self._directory, name)
+            link = old.pop(path, None) or self._connect(path)
+            if link is not None:
+                links[path] = link
+        for link in old.values():
+            link.close()
+        self._links = links
+        self._peers = tuple(links.items())
+
+    def _connect(self, path: bytes) -> socket.socket | None:
+        """A non-blocking datagram socket connected to the member at ``path``; None when nobody
+        is bound there (a stale file, removed, or one removed meanwhile)."""
+        link = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        link.setblocking(False)
+        try:
+            link.connect(path)
+        except OSError as exc:
+            link.close()
+            if exc.errno == errno.ECONNREFUSED:      # nobody is bound to it: its process was killed
+                with suppress(FileNotFoundError):
+                    os.unlink(path)
+            elif exc.errno != errno.ENOENT:
+                raise can.CanOperationError(f"{self.channel_info}: cannot reach {os.fsdecode(path)}: "
+                                            f"{exc.strerror or exc}", exc.errno) from None
+            return None
+        return link
 
     # -- send and receive ----------------------------------------------------------------------------
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         """Send ``msg`` to every member of the channel. Never waits, whatever ``timeout``: a
         member whose queue is full misses the frame (counted in ``dropped``)."""
-        sock = self._sock
-        if sock is None:
+        if self._sock is None:
             raise can.CanOperationError(f"{self.channel_info}: send on a bus that is shut down")
         data = msg.data
         if len(data) > MAX_DATA_BYTES:
@@ -215,12 +264,40 @@ class LocalBus(can.BusABC):
         except struct.error as exc:
             raise ValueError(f"local bus: cannot encode arbitration id {msg.arbitration_id!r}, "
                              f"dlc {msg.dlc!r}: {exc}") from None
+        self._deliver(frame)
+
+    def raw_frame(self, arbitration_id: int, length: int, is_extended_id: bool = False,
+                  is_fd: bool = False) -> bytearray:
+        """A datagram of this bus for a data frame of ``length`` bytes on ``arbitration_id``, its
+        data zero: write the data at ``RAW_DATA`` and send it with ``send_raw`` (as often as
+        wanted; each send stamps its own time)."""
+        if not 0 <= length <= MAX_DATA_BYTES:
+            raise ValueError(f"local bus: {length} data bytes; a frame carries 0 to {MAX_DATA_BYTES}")
+        flags = (EXTENDED_ID if is_extended_id else 0) | (FD_FRAME if is_fd else 0)
+        try:
+            return bytearray(FRAME.pack(VERSION, flags, length, length, arbitration_id, self._sender_id, 0.0,
+                                        b""))
+        except struct.error as exc:
+            raise ValueError(f"local bus: cannot encode arbitration id {arbitration_id!r}: {exc}") from None
+
+    def send_raw(self, frame: bytearray) -> None:
+        """Send a datagram made by ``raw_frame`` (its data filled in), stamped with the time now;
+        as ``send``, without a ``can.Message``."""
+        if self._sock is None:
+            raise can.CanOperationError(f"{self.channel_info}: send on a bus that is shut down")
+        if len(frame) != RAW_SIZE:
+            raise ValueError(f"local bus: a datagram of {len(frame)} bytes; raw_frame() makes {RAW_SIZE}")
+        SEND_TIME.pack_into(frame, RAW_TIME, time.time())
+        self._deliver(frame)
+
+    def _deliver(self, frame) -> None:
+        """Send one datagram to every member (see ``send``)."""
         if self._generation[:] != self._seen_generation:
             self._rescan()
         gone = False
-        for peer in self._peers:
+        for peer, link in self._peers:
             try:
-                sock.sendto(frame, peer)
+                link.send(frame)
             except OSError as exc:
                 if exc.errno in QUEUE_FULL_ERRNOS:
                     self.dropped += 1
@@ -235,23 +312,30 @@ class LocalBus(can.BusABC):
         if gone:
             self._rescan()     # the members that went away are no longer listed
 
-    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        """One frame, waiting up to ``timeout`` seconds (None: forever, 0: only what is queued);
-        malformed datagrams are counted and skipped."""
+    def recv_raw_into(self, frame: bytearray, timeout: float | None) -> bool:
+        """Receive the next frame's datagram into ``frame`` (a buffer of at least
+        ``RAW_BUFFER_SIZE`` bytes; layout in the module docstring), waiting up to ``timeout``
+        seconds (None: forever, 0: only what is queued): False when none came. Malformed
+        datagrams are counted and skipped."""
         sock = self._sock
         if sock is None:
             raise can.CanOperationError(f"{self.channel_info}: receive on a bus that is shut down")
-        deadline = None if timeout is None else time.monotonic() + timeout
+        if len(frame) < RAW_BUFFER_SIZE:
+            raise ValueError(f"local bus: a receive buffer of {len(frame)} bytes; expected {RAW_BUFFER_SIZE}")
+        deadline = None
         while True:
             try:
-                size = sock.recv_into(self._rx)
+                size = sock.recv_into(frame)
             except BlockingIOError:
-                if deadline is None:
+                if timeout is None:
                     self._poll.poll()
                     continue
-                remaining_s = deadline - time.monotonic()
+                now = time.monotonic()
+                if deadline is None:
+                    deadline = now + timeout
+                remaining_s = deadline - now
                 if remaining_s <= 0:
-                    return None, False
+                    return False
                 # select, not poll: poll waits whole milliseconds, and a time-out of a fraction of
                 # a sample period must not become a millisecond
                 select.select(self._readers, (), (), remaining_s)
@@ -259,26 +343,24 @@ class LocalBus(can.BusABC):
             except OSError as exc:
                 raise can.CanOperationError(f"{self.channel_info}: receive failed: {exc.strerror or exc}",
                                             exc.errno) from None
-            msg = self._decode(size)
-            if msg is not None:
-                return msg, False
+            if size == RAW_SIZE and frame[RAW_VERSION] == VERSION and frame[RAW_LENGTH] <= MAX_DATA_BYTES:
+                return True
             self.malformed += 1
 
-    def _decode(self, size: int) -> can.Message | None:
-        """The frame in the receive buffer, or None when the datagram is not one."""
-        if size != FRAME.size:
-            return None
-        version, flags, dlc, length, arbitration_id, sender, timestamp = HEADER.unpack_from(self._rx)
-        if version != VERSION or length > MAX_DATA_BYTES:
-            return None
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        """One frame, waiting up to ``timeout`` seconds (None: forever, 0: only what is queued);
+        malformed datagrams are counted and skipped."""
+        if not self.recv_raw_into(self._rx, timeout):
+            return None, False
+        _, flags, dlc, length, arbitration_id, sender, timestamp = HEADER.unpack_from(self._rx)
         return can.Message(timestamp=timestamp, arbitration_id=arbitration_id,
                            is_extended_id=bool(flags & EXTENDED_ID),
                            is_remote_frame=bool(flags & REMOTE_FRAME),
                            is_error_frame=bool(flags & ERROR_FRAME), is_fd=bool(flags & FD_FRAME),
                            bitrate_switch=bool(flags & BITRATE_SWITCH),
                            error_state_indicator=bool(flags & ERROR_STATE_INDICATOR),
-                           dlc=dlc, data=self._rx[HEADER.size:HEADER.size + length],
-                           is_rx=sender != self._sender_id, channel=self.channel)
+                           dlc=dlc, data=self._rx[RAW_DATA:RAW_DATA + length],
+                           is_rx=sender != self._sender_id, channel=self.channel), False
 
     # -- lifecycle -----------------------------------------------------------------------------------
     def fileno(self) -> int:
@@ -293,6 +375,9 @@ class LocalBus(can.BusABC):
         if self._sock is not None:
             self._sock.close()
             self._sock = None
+        for link in self._links.values():
+            link.close()
+        self._links, self._peers = {}, ()
         if self._path is not None:
             if self._owner_pid == os.getpid():
                 with suppress(FileNotFoundError):

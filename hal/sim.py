@@ -65,6 +65,7 @@ class SimBackend(HalBase):
         strains, load = self.plant.measure()
         self._sequence += 1
         sample.sequence = self._sequence
+        sample.missed = 0
         sample.timestamp = self.plant.time
         sample.strains[:] = strains
         sample.axial_load = load

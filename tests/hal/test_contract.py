@@ -27,6 +27,7 @@ def test_samples_are_consecutive_and_carry_the_plant_s_outputs(rig):
         for _ in range(50):
             s = hal.read(timeout=1.0)
             sequences.append(s.sequence)
+            assert s.missed == 0, "a sample in order skipped none"
             assert s.strains.shape == (4,) and np.all(np.isfinite(s.strains))
             assert s.axial_load == pytest.approx(1500.0, abs=10.0)
             hal.write(bias)

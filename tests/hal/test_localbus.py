@@ -1,5 +1,6 @@
 """The local bus (``beamctl_local``): CAN frames between processes of one machine, intact and in
-order, over UNIX datagram sockets in a private directory."""
+order, over UNIX datagram sockets in a private directory; its raw datagrams (the CAN backend's
+fast path) interchangeable with python-can's messages."""
 
 import os
 import select
@@ -13,7 +14,20 @@ import uuid
 import can
 import pytest
 
-from beamctl.hal.localbus import BASE_DIR_ENV, FRAME, SOCKET_SUFFIX, LocalBus
+from beamctl.hal.localbus import (
+    BASE_DIR_ENV,
+    EXTENDED_ID,
+    FD_FRAME,
+    FRAME,
+    HEADER,
+    RAW_BUFFER_SIZE,
+    RAW_DATA,
+    RAW_TIME,
+    SEND_TIME,
+    SOCKET_SUFFIX,
+    VERSION,
+    LocalBus,
+)
 
 READY_ID, STOP_ID = 0x7F0, 0x7FF    # a child process announces itself, is told to end
 
@@ -286,3 +300,51 @@ def test_a_channel_named_by_digits_alone_works_through_python_can(base_dir):
     finally:
         sender.shutdown()
         receiver.shutdown()
+
+
+def test_a_raw_datagram_arrives_as_a_message_and_a_message_as_a_raw_datagram(open_bus, channel):
+    sender, receiver = open_bus(), open_bus()
+    frame = sender.raw_frame(0x123, 8, is_fd=True)
+    frame[RAW_DATA:RAW_DATA + 8] = bytes(range(8))
+    before = time.time()
+    sender.send_raw(frame)
+    after = time.time()
+    sender.send_raw(frame)                      # as often as wanted, each send stamped anew
+    first, second = receiver.recv(timeout=5.0), receiver.recv(timeout=5.0)
+    for msg in (first, second):
+        assert msg is not None, "the raw datagram never arrived"
+        fields = (msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame, msg.is_fd, msg.dlc,
+                  bytes(msg.data), msg.is_rx, msg.channel)
+        assert fields == (0x123, False, False, True, 8, bytes(range(8)), True, channel), msg
+    assert before <= first.timestamp <= after <= second.timestamp, "not stamped with the send time"
+
+    sender.send(FRAMES["extended-id"])
+    buffer = bytearray(RAW_BUFFER_SIZE)
+    before_recv = time.time()
+    assert receiver.recv_raw_into(buffer, 5.0), "the message never arrived as a datagram"
+    version, flags, dlc, length, arbitration_id, _, stamp = HEADER.unpack_from(buffer)
+    assert (version, flags & (EXTENDED_ID | FD_FRAME), dlc, length, arbitration_id) == (
+        VERSION, EXTENDED_ID, 3, 3, 0x1ABCDEF0)
+    assert bytes(buffer[RAW_DATA:RAW_DATA + length]) == b"\x01\x02\x03"
+    assert SEND_TIME.unpack_from(buffer, RAW_TIME)[0] == stamp <= before_recv
+
+
+def test_recv_raw_into_times_out_and_skips_what_is_no_frame(open_bus, base_dir, channel):
+    receiver = open_bus()
+    buffer = bytearray(RAW_BUFFER_SIZE)
+    assert not receiver.recv_raw_into(buffer, 0)
+    start = time.monotonic()
+    assert not receiver.recv_raw_into(buffer, 0.05)
+    assert time.monotonic() - start < 1.0
+    (path,) = sockets(base_dir, channel)
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as raw:
+        raw.sendto(b"short", str(base_dir / channel / path))
+        raw.sendto(bytes([VERSION]) + bytes(FRAME.size), str(base_dir / channel / path))   # a byte too long
+    sender = open_bus()
+    sender.send(can.Message(arbitration_id=7))
+    assert receiver.recv_raw_into(buffer, 5.0)
+    assert HEADER.unpack_from(buffer)[4] == 7 and receiver.malformed == 2
+    with pytest.raises(ValueError, match="receive buffer"):
+        receiver.recv_raw_into(bytearray(FRAME.size), 0)
+    with pytest.raises(ValueError, match="raw_frame"):
+        sender.send_raw(bytearray(10))
