@@ -1,106 +1,70 @@
-"""Offline runs in a compiled kernel: the cycles of a simulated run in which nothing happens.
+"""Offline runs in a compiled kernel: a simulated run's cycles without Python per sample.
 
-A simulated load ramp (``beamctl experiment``, a study's experiment sample) spends almost all
-of its cycles in one state: the controller RUNNING (or ARMED, for the uncontrolled run), a new
-sample every cycle, no fault, no operator. ``run_cycles`` runs such cycles, with the arithmetic
-of one pass of ``ControlLoop._cycle_until_done`` over the sim backend (the plant's measurement,
-the control step of rt/controller.py with its schedule, allocation and saturation count, the
-stacks' forces on the rig, the plant's step) and the experiment's monitor, compiled with numba.
+A simulated load ramp (``beamctl experiment``, a study's experiment sample) runs the same cycle
+as the rig: per sample the sim backend's measurement of the plant, the engine's control cycle
+(rt/engine.py ``cycle``, the one compiled implementation the service runs too: checks, schedule,
+law, allocation and clamp, every fault decision), the stacks' forces on the rig and the plant's
+step, and the experiment's monitor. ``run_cycles`` runs these cycles in one compiled loop that
+calls the engine's ``cycle`` itself; only the plant's and the monitor's arithmetic is written
+here (the plant's as models/plant.py's ``measure`` and ``step``, tests/tools/test_simkernel.py
+compares the two runs).
 
-It hands over to the loop, without touching anything, whenever the next cycle would do more
-than that: a sample that trips a check (strain, load cell, table range), the saturation count
-reaching its limit, a stop, a re-arm or an operator command, a DAQ gone silent. The loop then
-runs that cycle itself, with the same code as on the rig, and offers the next one to the
-kernel again. The kernel also returns for what needs Python: a new discretisation of the plant
+It hands over to the loop after any cycle that leaves the controller neither RUNNING nor ARMED
+(a fault or a stop: the loop then runs the ramp to bias), and before any cycle the loop must run
+itself: a stop, a re-arm or an operator command, a DAQ gone silent, telemetry (a run with
+telemetry runs in the loop). It returns for what needs Python: a new discretisation of the plant
 (a new load cell), a new block of measurement noise, the monitor's progress and end check.
 
 Not kept in kernel cycles: the loop's per-stage timing (a simulated sample has none worth
-measuring) and telemetry (a run with telemetry runs in the loop).
-
-``Accelerator`` is the ``ControlLoop`` hook: offered each cycle, it runs as many kernel cycles
-as it can and returns how many. The record layout, flag bits and states are passed to the
-kernel as data, so that a change in rt/controller.py can never meet a stale compiled copy.
-Requires numba (``pip install 'beamctl[fast]'``).
+measuring). ``Accelerator`` is the ``ControlLoop`` hook: offered each cycle, it runs as many
+kernel cycles as it can and returns how many. Numba keys a disk cache on this file alone; the
+kernel's cache is dropped when the engine it calls has changed (``kernel``).
 """
 
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 
-from beamctl.rt import controller as ctl
+from beamctl.rt import engine as e
 from beamctl.rt.safety import Fault, State
 
 # what a call of run_cycles ends on
 DONE = 0            # the cycle budget is spent
-EVENT = 1           # the next cycle does more than the kernel does: the loop runs it
+EVENT = 1           # the controller left RUNNING and ARMED: the loop runs the next cycles
 NEED_NOISE = 2      # the next cycle needs a new block of measurement noise
 NEED_CELL = 3       # the plant crossed into another load cell: a discretisation to fetch
 MONITOR = 4         # a monitor entry needs Python (progress, voltages, the end check)
 MONITOR_FULL = 5    # the monitor's arrays are full
 
 # float scalars (in and out)
-F_TIME, F_LOAD, F_FILTERED, F_SCALE_A, F_SCALE_B, F_SAFETY_TIME = range(6)
+F_TIME, F_LOAD = range(2)
 # float constants
-(F_PERIOD, F_ALPHA, F_HALF_BAND, F_FIRST, F_LAST, F_STRAIN_LIMIT, F_LOAD_LOW, F_LOAD_HIGH,
- F_RAMP_START, F_RAMP_END, F_RAMP_RATE, F_RAMP_HOLD, F_CELL, F_V_MIN, F_V_MAX, F_V_MID, F_SPAN,
- F_SPAN_FITS, F_LIMIT, F_END_TIME) = range(6, 26)
-N_F = 26
+(F_PERIOD, F_RAMP_START, F_RAMP_END, F_RAMP_RATE, F_RAMP_HOLD, F_CELL, F_LIMIT, F_END_TIME) = range(2, 10)
+N_F = 10
 # integer scalars (in and out)
-(K_NOISE, K_HEAD, K_SEQUENCE, K_INDEX, K_SATURATED, K_STEPS, K_BIN, K_COUNTER, K_ENTRIES, K_CYCLES,
- K_MISSING) = range(11)
+(K_NOISE, K_HEAD, K_SEQUENCE, K_BIN, K_COUNTER, K_ENTRIES, K_CYCLES) = range(7)
 # integer constants
-(K_RUNNING, K_START_SAMPLES, K_SAT_LIMIT, K_PAPER, K_ANTI_WINDUP, K_FRACTIONAL, K_DELAYED, K_MONITOR,
- K_DECIMATE, K_CALLBACK_EVERY, K_STATE) = range(11, 22)
-N_K = 22
-
-# the record's layout, as data
-(L_TIME, L_SEQUENCE, L_FLAGS, L_LOAD, L_LOAD_FILTERED, L_Q, L_U, L_V, L_SCALE_A, L_SCALE_B,
- L_INPUT_PERIOD, L_ANSWER_AGE, L_STRAINS, L_XI, L_APPLIED, L_FLAG_SAT_A, L_FLAG_SAT_B, L_FLAG_HELD,
- L_FLAG_FADING, L_OPERATOR) = range(20)
+(K_FRACTIONAL, K_DELAYED, K_MONITOR, K_DECIMATE, K_CALLBACK_EVERY) = range(7, 12)
+N_K = 12
 
 
-def layout() -> np.ndarray:
-    """Column indices and flag bits of rt/controller.py's record, for the kernel."""
-    c = ctl.COL
-    return np.array([ctl.I_TIME, ctl.I_SEQUENCE, ctl.I_FLAGS, ctl.I_LOAD, ctl.I_LOAD_FILTERED,
-                     c["q_1y"], c["force_y_A_N"], c["voltage_a1_V"], ctl.I_SCALE_A, ctl.I_SCALE_B,
-                     ctl.I_INPUT_PERIOD_US, ctl.I_ANSWER_AGE_US, c["strain_y1"], c["xi_1y"],
-                     c["applied_force_y_A_N"], ctl.FLAG_SATURATED_A, ctl.FLAG_SATURATED_B,
-                     ctl.FLAG_INTEGRATOR_HELD, ctl.FLAG_FADING_IN, ctl.I_OPERATOR_COMMAND], dtype=np.int64)
-
-
-def _run_cycles(f, k, lay, budget, state, nxt, ad, bd, c_meas, meas_lo, inputs, history, noise,
-                buffer, n_record, c0phiinv, t_h, ctl_force, bias, out_blocks, upd_blocks, int_blocks,
-                weights, loads, coef, rig_force, rig_bias, vy, vz, lateral, q_lo, mon, scratch):
+def _run_cycles(f, k, budget, state, nxt, ad, bd, c_meas, meas_lo, inputs, history, noise,
+                buf, iv, fv, mats, rig_force, rig_bias, vy, vz, lateral, q_lo, mon, scratch):
     """Run up to ``budget`` cycles; return (why it stopped, cycles run). ``f`` and ``k`` carry
-    the scalars in and out; the arrays are the plant's, the controller's and the monitor's own,
-    changed in place. A cycle that would do more than the kernel does is left untouched."""
+    the plant's and the monitor's scalars in and out; ``buf``, ``iv``, ``fv``, ``mats`` are the
+    controller's engine arrays; the other arrays the plant's and the monitor's own, changed in
+    place."""
     n_states = state.shape[0]
-    n_x = buffer.shape[0] - n_record                # compensator states
-    sig = n_record - 12                             # the record's signal vector [y; xi; u_applied]
-    i_strain, i_xi, i_applied = lay[L_STRAINS], lay[L_XI], lay[L_APPLIED]
-    i_q, i_u, i_v = lay[L_Q], lay[L_U], lay[L_V]
-    m_sig = 12 + n_x
-    s = scratch[0:m_sig]
-    tmp = scratch[m_sig:m_sig + 2 * n_x]
-    y = scratch[m_sig + 2 * n_x + 8:m_sig + 2 * n_x + 12]
-    u = scratch[m_sig + 2 * n_x + 12:m_sig + 2 * n_x + 16]
-    dxi = scratch[m_sig + 2 * n_x + 16:m_sig + 2 * n_x + 20]
-    target = scratch[m_sig + 2 * n_x + 20:m_sig + 2 * n_x + 26]
-    rig_f = scratch[m_sig + 2 * n_x + 26:m_sig + 2 * n_x + 30]
-    tmp_out = scratch[m_sig + 2 * n_x + 30:m_sig + 2 * n_x + 38]
-    forced = scratch[m_sig + 2 * n_x + 38:m_sig + 2 * n_x + 38 + n_states]
-    running = k[K_RUNNING] == 1
-    paper = k[K_PAPER] == 1
-    n_loads = loads.shape[0]
-    last_index = n_loads - 1
+    rig_f = scratch[0:4]
+    forced = scratch[4:4 + n_states]
     n_inputs = inputs.shape[0]
     hist_len = history.shape[0]
     cycles = 0
     while cycles < budget:
-        # -- the sample the sim backend would read (measure: C x behind the filter, noise) --------
+        # -- the sample the sim backend reads (measure: C x behind the filter, noise) ------------
         i_noise = k[K_NOISE]
         if i_noise >= noise.shape[0]:
             return NEED_NOISE, cycles
@@ -108,186 +72,21 @@ def _run_cycles(f, k, lay, budget, state, nxt, ad, bd, c_meas, meas_lo, inputs, 
             acc = 0.0
             for m in range(c_meas.shape[1]):
                 acc += c_meas[j, m] * state[meas_lo + m]
-            y[j] = acc + noise[i_noise, j]
-        load = f[F_LOAD] + noise[i_noise, 4]
-        flags = 0
-        index = k[K_INDEX]
-        filtered = f[F_FILTERED]
-        w1 = weights[1]
-        scale_a, scale_b = f[F_SCALE_A], f[F_SCALE_B]
-        if running:
-            # -- safety.check_inputs: a reading that trips is the loop's ---------------------------
-            limit = f[F_STRAIN_LIMIT]
-            for j in range(4):
-                if not abs(y[j]) <= limit:
-                    return EVENT, cycles
-            if not (f[F_LOAD_LOW] <= load <= f[F_LOAD_HIGH]):
-                return EVENT, cycles
-            # -- schedule.follow -----------------------------------------------------------------
-            filtered = filtered + f[F_ALPHA] * (load - filtered)
-            if filtered < f[F_FIRST] or filtered > f[F_LAST]:
-                return EVENT, cycles
-            if paper:
-                while index < last_index and filtered > loads[index] + f[F_HALF_BAND]:
-                    index += 1
-                while index > 0 and filtered < loads[index - 1] - f[F_HALF_BAND]:
-                    index -= 1
-            else:
-                if filtered <= f[F_FIRST]:
-                    index, w1 = 0, 0.0
-                elif filtered >= f[F_LAST]:
-                    index, w1 = last_index, 0.0
-                else:
-                    index = np.searchsorted(loads, filtered, side="right") - 1
-                    if index < 0:
-                        index = 0
-                    if index > last_index:
-                        index = last_index
-                    w1 = filtered - loads[index]
-            w0 = weights[0]
-            # -- integral action with anti-windup --------------------------------------------------
-            for j in range(4):
-                acc = 0.0
-                for m in range(4):
-                    acc += t_h[j, m] * y[m]
-                dxi[j] = acc
-            for m in range(4):
-                s[m] = y[m]
-                s[8 + m] = buffer[i_applied + m]
-            for m in range(n_x):
-                s[12 + m] = buffer[n_record + m]
-            held = False
-            if k[K_ANTI_WINDUP] == 1 and (scale_a < 1.0 or scale_b < 1.0):
-                for j in range(8):
-                    acc = 0.0
-                    for m in range(4):
-                        acc += int_blocks[index, j, m] * dxi[m]
-                    tmp_out[j] = acc
-                du0 = w0 * tmp_out[0] + w1 * tmp_out[4]
-                du1 = w0 * tmp_out[1] + w1 * tmp_out[5]
-                du2 = w0 * tmp_out[2] + w1 * tmp_out[6]
-                du3 = w0 * tmp_out[3] + w1 * tmp_out[7]
-                u0, u1, u2, u3 = buffer[i_u], buffer[i_u + 1], buffer[i_u + 2], buffer[i_u + 3]
-                held = ((scale_a < 1.0 and du0 * u0 + du1 * u1 > 0.0)
-                        or (scale_b < 1.0 and du2 * u2 + du3 * u3 > 0.0))
-            if held:
-                flags += lay[L_FLAG_HELD]
-                for m in range(4):
-                    s[4 + m] = buffer[i_xi + m]
-            else:
-                for m in range(4):
-                    s[4 + m] = buffer[i_xi + m] + dxi[m]
-            # -- u = -(C x_c + D y) - Ki xi ---------------------------------------------------------
-            np.dot(out_blocks[index], s, tmp_out)
-            for j in range(4):
-                u[j] = w0 * tmp_out[j] + w1 * tmp_out[4 + j]
-            # -- allocation (rt/allocation.py, scale mode) ---------------------------------------------
-            for support in range(2):
-                fy, fz = u[2 * support], u[2 * support + 1]
-                if not (fy - fy == 0.0 and fz - fz == 0.0):
-                    fy = math.nan
-                    fz = math.nan
-                g1 = coef[support, 0, 0] * fy + coef[support, 0, 1] * fz
-                g2 = coef[support, 1, 0] * fy + coef[support, 1, 1] * fz
-                g3 = coef[support, 2, 0] * fy + coef[support, 2, 1] * fz
-                hi = g1 if g1 > g2 else g2
-                hi = hi if hi > g3 else g3
-                lo = g1 if g1 < g2 else g2
-                lo = lo if lo < g3 else g3
-                spread = hi - lo
-                if spread <= f[F_SPAN_FITS]:
-                    scale = 1.0
-                elif spread < math.inf:
-                    scale = f[F_SPAN] / spread
-                else:
-                    scale = 0.0
-                    g1 = g2 = g3 = hi = lo = 0.0
-                centre = f[F_V_MID] - scale * 0.5 * (hi + lo)
-                for st in range(3):
-                    g = g1 if st == 0 else (g2 if st == 1 else g3)
-                    v = centre + scale * g
-                    target[3 * support + st] = f[F_V_MIN] if v < f[F_V_MIN] else (
-                        f[F_V_MAX] if v > f[F_V_MAX] else v)
-                if support == 0:
-                    scale_a = scale
-                else:
-                    scale_b = scale
-            saturated = scale_a < 1.0 or scale_b < 1.0
-            if saturated and k[K_SATURATED] + 1 >= k[K_SAT_LIMIT]:
-                return EVENT, cycles        # persistent saturation: the loop latches the fault
-            if scale_a < 1.0:
-                flags += lay[L_FLAG_SAT_A]
-            if scale_b < 1.0:
-                flags += lay[L_FLAG_SAT_B]
-            # -- commit: the step as the controller makes it ---------------------------------------
-            buffer[lay[L_LOAD_FILTERED]] = filtered
-            for j in range(4):
-                acc = 0.0
-                for m in range(4):
-                    acc += c0phiinv[j, m] * y[m]
-                buffer[i_q + j] = acc
-                buffer[i_strain + j] = y[j]
-                buffer[i_xi + j] = s[4 + j]
-                buffer[i_u + j] = u[j]
-            buffer[lay[L_SCALE_A]] = scale_a
-            buffer[lay[L_SCALE_B]] = scale_b
-            steps = k[K_STEPS] + 1
-            k[K_STEPS] = steps
-            if steps < k[K_START_SAMPLES]:
-                flags += lay[L_FLAG_FADING]
-                fade = steps / k[K_START_SAMPLES]
-                for j in range(6):
-                    buffer[i_v + j] = (target[j] - bias[j]) * fade + bias[j]
-            else:
-                for j in range(6):
-                    buffer[i_v + j] = target[j]
-            for j in range(4):
-                acc = 0.0
-                for m in range(6):
-                    acc += ctl_force[j, m] * (buffer[i_v + m] - bias[m])
-                buffer[i_applied + j] = acc
-            # x_c = A x_c + B y + E u_applied over the committed signals
-            np.dot(upd_blocks[index], buffer[sig:sig + m_sig], tmp)
-            for j in range(n_x):
-                buffer[n_record + j] = w0 * tmp[j] + w1 * tmp[n_x + j]
-            k[K_SATURATED] = k[K_SATURATED] + 1 if saturated else 0
-            k[K_INDEX] = index
-            weights[1] = w1
-            f[F_FILTERED] = filtered
-            f[F_SCALE_A] = scale_a
-            f[F_SCALE_B] = scale_b
-        else:
-            # ARMED: observe (q for the monitor), the stacks at bias
-            for j in range(4):
-                buffer[i_strain + j] = y[j]
-            for j in range(4):
-                acc = 0.0
-                for m in range(4):
-                    acc += c0phiinv[j, m] * y[m]
-                buffer[i_q + j] = acc
-            for j in range(4):
-                acc = 0.0
-                for m in range(6):
-                    acc += ctl_force[j, m] * (buffer[i_v + m] - bias[m])
-                buffer[i_applied + j] = acc
-        # the record's sample fields, as step() writes them
-        t_s = f[F_TIME]
+            fv[e.IN_Y + j] = acc + noise[i_noise, j]
         k[K_SEQUENCE] += 1
-        buffer[lay[L_INPUT_PERIOD]] = (t_s - buffer[lay[L_TIME]]) * 1e6
-        buffer[lay[L_TIME]] = t_s
-        buffer[lay[L_SEQUENCE]] = k[K_SEQUENCE]
-        buffer[lay[L_LOAD]] = load
-        buffer[lay[L_FLAGS]] = flags
-        buffer[lay[L_ANSWER_AGE]] = math.nan
-        buffer[lay[L_OPERATOR]] = 0.0               # no operator's command in a kernel cycle
-        f[F_SAFETY_TIME] = t_s
-        k[K_MISSING] = 0
+        fv[e.IN_TIME] = f[F_TIME]
+        fv[e.IN_SEQUENCE] = k[K_SEQUENCE]
+        fv[e.IN_LOAD] = f[F_LOAD] + noise[i_noise, 4]
+        fv[e.IN_MISSED] = 0.0
         k[K_NOISE] = i_noise + 1
+        # -- the engine's cycle ----------------------------------------------------------------------
+        controller_state = e.cycle(buf, iv, fv, mats, 1)
+        buf[e.I_OPERATOR_COMMAND] = 0.0             # no operator's command in a kernel cycle
         # -- the write: the rig's stacks' forces, the plant's step --------------------------------
         for j in range(4):
             acc = 0.0
             for m in range(6):
-                acc += rig_force[j, m] * (buffer[i_v + m] - rig_bias[m])
+                acc += rig_force[j, m] * (buf[e.I_V + m] - rig_bias[m])
             rig_f[j] = acc
         if k[K_DELAYED] == 1:
             head = k[K_HEAD]
@@ -312,7 +111,7 @@ def _run_cycles(f, k, lay, budget, state, nxt, ad, bd, c_meas, meas_lo, inputs, 
         np.dot(bd, inputs, forced)
         for j in range(n_states):
             state[j] = nxt[j] + forced[j]
-        t_new = t_s + f[F_PERIOD]
+        t_new = f[F_TIME] + f[F_PERIOD]
         f[F_TIME] = t_new
         if t_new <= f[F_RAMP_HOLD]:
             new_load = f[F_RAMP_START]
@@ -334,8 +133,8 @@ def _run_cycles(f, k, lay, budget, state, nxt, ad, bd, c_meas, meas_lo, inputs, 
                     a1 = 0.0
                     a2 = 0.0
                     for m in range(4):
-                        a1 += vy[b, m] * buffer[i_q + m]
-                        a2 += vz[b, m] * buffer[i_q + m]
+                        a1 += vy[b, m] * buf[e.I_Q + m]
+                        a2 += vz[b, m] * buf[e.I_Q + m]
                     mag = math.hypot(a1, a2)
                     if mag > best:
                         best, by, bz = mag, a1, a2
@@ -349,26 +148,29 @@ def _run_cycles(f, k, lay, budget, state, nxt, ad, bd, c_meas, meas_lo, inputs, 
                     mag = math.hypot(a1, a2)
                     if mag > true:
                         true = mag
-                e = k[K_ENTRIES]
-                vmin, vmax = buffer[i_v], buffer[i_v]
+                n_e = k[K_ENTRIES]
+                vmin, vmax = buf[e.I_V], buf[e.I_V]
                 for j in range(1, 6):
-                    vmin = min(vmin, buffer[i_v + j])
-                    vmax = max(vmax, buffer[i_v + j])
-                mon[0, e] = new_load
-                mon[1, e] = best
-                mon[2, e] = by
-                mon[3, e] = bz
-                mon[4, e] = true
-                mon[5, e] = vmin
-                mon[6, e] = vmax
-                mon[7, e] = k[K_STATE]
-                mon[8, e] = 1.0 if (scale_a < 1.0 or scale_b < 1.0) else 0.0
-                k[K_ENTRIES] = e + 1
+                    vmin = min(vmin, buf[e.I_V + j])
+                    vmax = max(vmax, buf[e.I_V + j])
+                mon[0, n_e] = new_load
+                mon[1, n_e] = best
+                mon[2, n_e] = by
+                mon[3, n_e] = bz
+                mon[4, n_e] = true
+                mon[5, n_e] = vmin
+                mon[6, n_e] = vmax
+                mon[7, n_e] = controller_state
+                mon[8, n_e] = 1.0 if (fv[e.X_SCALE_A] < 1.0 or fv[e.X_SCALE_B] < 1.0) else 0.0
+                k[K_ENTRIES] = n_e + 1
                 if (k[K_COUNTER] % k[K_CALLBACK_EVERY] == 0 or best > f[F_LIMIT]
                         or t_new >= f[F_END_TIME]):
                     return MONITOR, cycles
-                if e + 1 >= mon.shape[1]:
+                if n_e + 1 >= mon.shape[1]:
                     return MONITOR_FULL, cycles
+        # -- a fault or a stop: the loop runs the ramp ------------------------------------------------
+        if controller_state != e.S_RUNNING and controller_state != e.S_ARMED:
+            return EVENT, cycles
         # -- a new load cell needs a discretisation --------------------------------------------------
         ratio = new_load / f[F_CELL]
         cell = math.floor(ratio + 0.5)
@@ -378,31 +180,34 @@ def _run_cycles(f, k, lay, budget, state, nxt, ad, bd, c_meas, meas_lo, inputs, 
 
 
 _kernel = None
+STAMP = "simkernel-engine.sha256"
 
 
 def kernel():
     """The compiled ``run_cycles`` (numba; compiled once per process, cached on disk where the
-    package's folder is writable)."""
+    package's folder is writable). Numba keys the cache on this file only, while the kernel
+    compiles the engine's cycle into itself: the cache is dropped when rt/engine.py has changed
+    since it was written."""
     global _kernel
     if _kernel is None:
+        import numba
+
+        dispatcher = numba.njit(cache=True, nogil=True, fastmath=e.FASTMATH)(_run_cycles)
         try:
-            import numba
-        except ImportError as exc:
-            raise ImportError("the compiled simulation kernel needs numba: "
-                              "pip install 'beamctl[fast]'") from exc
-        # reassociation lets the compiler split each dot product's sum into vector lanes (the
-        # strict left-to-right sum is a chain of dependent adds, several times slower); NaN and
-        # infinity keep their IEEE meaning (the checks of a sample rely on it)
-        flags = {"reassoc", "contract"}
-        try:
-            _kernel = numba.njit(cache=True, nogil=True, fastmath=flags)(_run_cycles)
-        except Exception:           # a read-only install: compile per process
-            _kernel = numba.njit(cache=False, nogil=True, fastmath=flags)(_run_cycles)
+            cache = dispatcher._cache
+            stamp = Path(cache._cache_path) / STAMP
+            digest = e.source_digest()
+            if not stamp.exists() or stamp.read_text() != digest:
+                cache.flush()
+                stamp.write_text(digest)
+        except (AttributeError, OSError):   # no disk cache here: compiled in this process
+            dispatcher = numba.njit(cache=False, nogil=True, fastmath=e.FASTMATH)(_run_cycles)
+        _kernel = dispatcher
     return _kernel
 
 
 def available() -> bool:
-    """Whether numba can be imported (the kernel's one requirement)."""
+    """Whether the kernel can run (numba is part of the default install)."""
     try:
         import numba  # noqa: F401
     except ImportError:
@@ -411,7 +216,7 @@ def available() -> bool:
 
 
 class Accelerator:
-    """The ``ControlLoop`` hook that runs a simulated run's uneventful cycles in the kernel.
+    """The ``ControlLoop`` hook that runs a simulated run's cycles in the kernel.
 
     ``monitor``: the run's ``RunMonitor`` (the loop's ``on_cycle``), or None. Built once per run
     before the loop starts; every array the kernel uses is the plant's, the controller's and the
@@ -428,15 +233,8 @@ class Accelerator:
         self.plant = hal.plant
         self.monitor = monitor
         self.kernel_cycles = 0
-        c = controller
-        alloc = c.allocator
-        self._layout = layout()
         self._f = np.zeros(N_F)
         self._k = np.zeros(N_K, dtype=np.int64)
-        self._coef = np.asarray(alloc._coef, dtype=float)
-        self._n_record = ctl.N_COLUMNS
-        self._schedule = None
-        self._bind_table()
         self._rig_force = np.ascontiguousarray(hal._force_matrix)
         self._rig_bias = np.ascontiguousarray(hal._bias)
         plant = self.plant
@@ -446,16 +244,10 @@ class Accelerator:
         else:
             self._vy = self._vz = np.zeros((1, 4))
         self._lateral = np.ascontiguousarray(plant._lateral)
-        settings = c.safety
+        self._scratch = np.zeros(4 + plant.n_states)
         f, k = self._f, self._k
         f[F_PERIOD] = plant.sample_period
-        f[F_LOAD_LOW], f[F_LOAD_HIGH] = settings._load_low, settings._load_high
         f[F_CELL] = 2.0 * plant.config.load_tolerance
-        f[F_V_MIN], f[F_V_MAX], f[F_V_MID] = alloc.min_voltage_v, alloc.max_voltage_v, alloc.mid_voltage_v
-        f[F_SPAN], f[F_SPAN_FITS] = alloc.voltage_span_v, alloc._span_fits
-        k[K_START_SAMPLES] = c._start_samples
-        k[K_SAT_LIMIT] = settings._saturation_limit
-        k[K_ANTI_WINDUP] = 1 if c._anti_windup else 0
         k[K_FRACTIONAL] = 1 if plant._fractional else 0
         k[K_DELAYED] = 1 if plant._delayed else 0
         k[K_MONITOR] = 1 if monitor is not None else 0
@@ -467,27 +259,10 @@ class Accelerator:
             k[K_DECIMATE] = k[K_CALLBACK_EVERY] = 1
             f[F_LIMIT] = f[F_END_TIME] = math.inf
 
-    def _bind_table(self) -> None:
-        """The arrays of the controller's gain table (again after an operator's swap)."""
-        c = self.controller
-        sched = c.schedule
-        self._schedule = sched
-        self._out_blocks = np.ascontiguousarray(np.stack(sched._output_blocks))
-        self._upd_blocks = np.ascontiguousarray(np.stack(sched._update_blocks))
-        self._int_blocks = np.ascontiguousarray(np.stack(sched._integral_blocks))
-        self._loads = np.asarray(sched._loads, dtype=float)
-        self._buffer = c.record.base if c.record.base is not None else c.record
-        n_x = c.compensator_state.shape[0]
-        self._scratch = np.zeros(12 + n_x + 2 * n_x + 8 + 38 + self.plant.n_states)
-        f = self._f
-        f[F_ALPHA], f[F_HALF_BAND] = sched._alpha, sched._half_band
-        f[F_FIRST], f[F_LAST] = sched._first, sched._last
-        self._k[K_PAPER] = 1 if sched._paper else 0
-
     def eligible(self, loop) -> bool:
         """Whether the next cycles are the kernel's kind: sample pacing on the simulated sim
-        backend, no telemetry, the controller RUNNING its law (scale allocation, no excitation)
-        or ARMED, nothing asked of the loop."""
+        backend, no telemetry, the controller RUNNING or ARMED without a fault, nothing asked of
+        the loop."""
         c, hal, plant = self.controller, self.hal, self.plant
         if loop.pacing != "sample" or loop.telemetry is not None or hal._silent or hal.pace != "simulated":
             return False
@@ -497,44 +272,28 @@ class Accelerator:
             return False
         if loop.on_cycle is not self.monitor:
             return False
-        state = c.supervisor.state
-        if state == State.RUNNING:
-            if not c._law or c._excitation is not None or getattr(c.allocator, "mode", "scale") != "scale":
-                return False
-        elif state != State.ARMED:
+        if c.state not in (State.RUNNING, State.ARMED) or c.supervisor.fault != Fault.NONE:
             return False
-        if c.supervisor.fault != Fault.NONE or plant._feedthrough is not None or not hal.is_open:
-            return False
-        return True
+        return plant._feedthrough is None and hal.is_open
 
     def __call__(self, loop) -> int:
         """Run as many cycles as the kernel can; return how many (0: the loop runs the next)."""
         if not self.eligible(loop):
             return 0
         c, hal, plant, monitor = self.controller, self.hal, self.plant, self.monitor
-        if c.schedule is not self._schedule:
-            self._bind_table()
-        sched, alloc, safety = c.schedule, c.allocator, c.safety
         f, k = self._f, self._k
-        state = c.supervisor.state
         ramp = plant.config.load
         f[F_RAMP_START], f[F_RAMP_END], f[F_RAMP_RATE], f[F_RAMP_HOLD] = (ramp.start, ramp.end, ramp.rate,
                                                                           ramp.hold)
-        f[F_TIME], f[F_LOAD], f[F_FILTERED] = plant.time, plant.axial_load, sched.filtered_load_n
-        f[F_SCALE_A], f[F_SCALE_B], f[F_SAFETY_TIME] = alloc.scale_a, alloc.scale_b, safety.time_s
-        f[F_STRAIN_LIMIT] = safety.strain_limit
+        f[F_TIME], f[F_LOAD] = plant.time, plant.axial_load
         k[K_NOISE], k[K_HEAD], k[K_SEQUENCE] = plant._noise_index, plant._head, hal._sequence
-        k[K_INDEX], k[K_SATURATED], k[K_STEPS] = sched.index, safety.saturated_samples, c._steps_since_start
-        k[K_BIN], k[K_CYCLES], k[K_MISSING] = plant._bin, 0, safety.missing_samples
-        k[K_RUNNING] = 1 if state == State.RUNNING else 0
-        k[K_STATE] = int(state)
+        k[K_BIN], k[K_CYCLES] = plant._bin, 0
         budget = (loop.max_cycles - loop.cycles) if loop.max_cycles is not None else 1 << 62
         if monitor is not None:
             k[K_COUNTER] = monitor.counter
             if monitor.ended:
                 k[K_MONITOR] = 0
         total = 0
-        why = EVENT
         while budget - total > 0:
             if monitor is not None and k[K_MONITOR] == 1:
                 mon = monitor.reserve()
@@ -542,12 +301,10 @@ class Accelerator:
             else:
                 mon = _NO_MONITOR
             why, n = self.run_cycles(
-                f, k, self._layout, budget - total, plant._state, plant._next, plant._ad, plant._bd,
+                f, k, budget - total, plant._state, plant._next, plant._ad, plant._bd,
                 self._c_meas, plant._measured.start, plant._inputs, plant._history, plant._noise_block,
-                self._buffer, self._n_record, c._c0_phi_inv, c._integral_map, c._force_matrix, c._bias,
-                self._out_blocks, self._upd_blocks, self._int_blocks, sched._weights, self._loads,
-                self._coef, self._rig_force, self._rig_bias, self._vy, self._vz, self._lateral,
-                plant._q.start, mon, self._scratch)
+                c._buffer, c.iv, c.fv, c._mats, self._rig_force, self._rig_bias, self._vy, self._vz,
+                self._lateral, plant._q.start, mon, self._scratch)
             total += n
             # the scalars back where the objects keep them
             plant.time, plant.axial_load = f[F_TIME], f[F_LOAD]
@@ -577,14 +334,9 @@ class Accelerator:
         return total
 
     def _sync(self, loop) -> None:
-        """The objects' own state after the kernel's cycles, as the loop would have left it."""
-        c, hal, f, k = self.controller, self.hal, self._f, self._k
-        sched, alloc, safety = c.schedule, c.allocator, c.safety
-        sched.filtered_load_n, sched.index, sched.out_of_range = f[F_FILTERED], int(k[K_INDEX]), False
-        alloc.scale_a, alloc.scale_b = f[F_SCALE_A], f[F_SCALE_B]
-        safety.saturated_samples, safety.missing_samples = int(k[K_SATURATED]), int(k[K_MISSING])
-        safety.time_s = f[F_SAFETY_TIME]
-        c._steps_since_start = int(k[K_STEPS])
+        """The loop's and the backend's counts after the kernel's cycles, as the loop would have
+        left them (the controller's state is the engine's arrays themselves)."""
+        c, hal, k = self.controller, self.hal, self._k
         done = int(k[K_CYCLES])
         k[K_CYCLES] = 0
         hal.reads += done
@@ -592,7 +344,7 @@ class Accelerator:
         loop.cycles += done
         self.kernel_cycles += done
         if done:
-            hal.publish_status(c.record[ctl.I_STATE], c.record[ctl.I_FAULT], int(c.record[ctl.I_FLAGS]))
+            hal.publish_status(c.record[e.I_STATE], c.record[e.I_FAULT], int(c.record[e.I_FLAGS]))
             loop._last_sample = loop.clock()
 
 
