@@ -8,6 +8,7 @@ real-time loop (rt/).
 from beamctl.gains.compensator import Compensator, CompensatorPoint
 from beamctl.gains.discrete import LoopCheck, VelocityFilter, velocity_filter
 from beamctl.gains.lqr import Weights, augmented_system, lqr_gain
+from beamctl.gains.ridethrough import RideThrough
 from beamctl.gains.schedule import GainSchedule
 from beamctl.gains.table import (
     DesignSettings,
@@ -26,6 +27,7 @@ __all__ = [
     "GainTable",
     "GainTableError",
     "LoopCheck",
+    "RideThrough",
     "ScheduleSettings",
     "VelocityFilter",
     "Weights",

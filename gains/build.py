@@ -1,6 +1,7 @@
 """Build a gain table: the integral LQR at every grid load as the compensator the step runs,
-and the discrete closed-loop check of exactly those matrices at every grid point and every
-midpoint between neighbours."""
+the discrete closed-loop check of exactly those matrices at every grid point and every
+midpoint between neighbours, and, for a table stable at every check point, the ride-through
+limits of that loop at the same loads (gains/ridethrough.py)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from importlib import metadata
 import numpy as np
 
 from beamctl.config.schema import ConfigError
-from beamctl.gains import lqg
+from beamctl.gains import lqg, ridethrough
 from beamctl.gains.compensator import Compensator, CompensatorPoint, from_integral_lqr
 from beamctl.gains.defaults import (
     DEFAULT_DESIGN,
@@ -113,6 +114,32 @@ def closed_loop_checks(model: FEModel, table: GainTable, progress: Progress | No
     return tuple(results)
 
 
+def ride_through(model: FEModel, table: GainTable, progress: Progress | None = None, done: int = 0,
+                 total: int | None = None) -> ridethrough.RideThrough:
+    """The ride-through limits of ``table``'s loop on the nominal rig at every load of its
+    closed-loop check (gains/ridethrough.py)."""
+    plan = check_plan(table)
+    return ridethrough.analyse(model, nominal_rig(model, table), table, plan, progress, done, total)
+
+
+def _checked(model: FEModel, table: GainTable, force: bool, analyse: bool, progress: Progress | None,
+             done: int, total: int) -> GainTable:
+    """The table with its closed-loop check and, stable at every point and with ``analyse``,
+    its ride-through limits (an unstable loop has no stationary state to ride through from)."""
+    checks = closed_loop_checks(model, table, progress, done, total)
+    table = replace(table, checks=checks)
+    if table.all_stable and analyse:
+        table = replace(table, ride_through=ride_through(model, table, progress, done + len(checks), total))
+    # --force marks a table that is written in spite of an unstable point, nothing else
+    return replace(table, forced=force and not table.all_stable)
+
+
+def _check_steps(loads: np.ndarray, schedule: ScheduleSettings, analyse: bool) -> int:
+    """Progress steps of the check and the ride-through analysis."""
+    plan = _plan_loads(loads, schedule)
+    return len(plan) + (ridethrough.steps(plan) if analyse else 0)
+
+
 def integral_lqr_compensator(gains: np.ndarray, c0_phi_inv: np.ndarray,
                              design: DesignSettings) -> Compensator:
     """The paper's controller for the gains K [G x 4 x 12]: (C0 Phi)^-1, the high-pass velocity
@@ -124,11 +151,12 @@ def integral_lqr_compensator(gains: np.ndarray, c0_phi_inv: np.ndarray,
 
 def build_table(model: FEModel, loads_n: Sequence[float] | None = None, mode: str = "interpolate",
                 design: DesignSettings = DEFAULT_DESIGN, schedule: ScheduleSettings | None = None,
-                check: bool = True, force: bool = False,
-                progress: Progress | None = None) -> GainTable:
+                check: bool = True, force: bool = False, progress: Progress | None = None,
+                analyse_ride_through: bool = True) -> GainTable:
     """Design K(Fx) on the grid ``loads_n`` (default: 0 to 4000 N every 50 N, or the paper's
     0 to 3500 N every 500 N in ``paper`` mode), write it as the compensator the step runs and
-    check the closed loop."""
+    check the closed loop (with ``check``; stable, and unless ``analyse_ride_through`` is
+    False, the ride-through limits too: a few seconds)."""
     if design.kind != "integral-lqr":
         raise ValueError(f"build_table designs integral-lqr tables, not {design.kind}")
     if loads_n is None:
@@ -138,7 +166,7 @@ def build_table(model: FEModel, loads_n: Sequence[float] | None = None, mode: st
         raise ConfigError("--grid", loads.tolist(), "at least two grid points to interpolate between")
     schedule = schedule or replace(DEFAULT_SCHEDULE, mode=mode)
     reduced = reduce(model)
-    total = len(loads) + (len(_plan_loads(loads, schedule)) if check else 0)
+    total = len(loads) + (_check_steps(loads, schedule, analyse_ride_through) if check else 0)
     gains = np.zeros((len(loads), 4, 12))
     for i, load in enumerate(loads):
         gains[i] = lqr_gain(reduced, load, design.weights)
@@ -148,20 +176,19 @@ def build_table(model: FEModel, loads_n: Sequence[float] | None = None, mode: st
                       c0_phi_inv=reduced.c0_phi_inv, design=design, schedule=schedule,
                       model_parameters=model.params, tool_version=tool_version(), gains=gains)
     if check:
-        table = replace(table, checks=closed_loop_checks(model, table, progress, len(loads), total))
-        # --force marks a table that is written in spite of an unstable point, nothing else
-        table = replace(table, forced=force and not table.all_stable)
+        table = _checked(model, table, force, analyse_ride_through, progress, len(loads), total)
     return table
 
 
 def build_lqg_table(model: FEModel, loads_n: Sequence[float] | None = None,
                     sample_rate_hz: float = LQG_SAMPLE_RATE_HZ, chain: IOChain = LQG_CHAIN,
                     settings: lqg.LqgSettings = LQG_SETTINGS, schedule: ScheduleSettings | None = None,
-                    check: bool = True, force: bool = False,
-                    progress: Progress | None = None) -> GainTable:
+                    check: bool = True, force: bool = False, progress: Progress | None = None,
+                    analyse_ride_through: bool = True) -> GainTable:
     """The delay-aware LQG (gains.lqg) at every grid load (default every 100 N to 4000 N),
     designed for ``chain``, as the compensator the step runs, with the closed-loop check on
-    that chain."""
+    that chain (with ``check``; stable, and unless ``analyse_ride_through`` is False, the
+    ride-through limits too)."""
     loads = np.asarray(LQG_GRID_N if loads_n is None else loads_n, dtype=float)
     if len(loads) < 2:
         raise ConfigError("--grid", loads.tolist(), "at least two grid points to interpolate between")
@@ -170,7 +197,7 @@ def build_lqg_table(model: FEModel, loads_n: Sequence[float] | None = None,
         raise ConfigError("--mode", schedule.mode, "'interpolate' for an lqg design (the paper's "
                           "switching belongs to the integral-lqr design)")
     reduced = reduce(model)
-    total = 2 + (len(_plan_loads(loads, schedule)) if check else 0)
+    total = 2 + (_check_steps(loads, schedule, analyse_ride_through) if check else 0)
     steps = iter(range(1, 3))
     comp = lqg.design(model, loads, sample_rate_hz, chain, reduced.c0_phi_inv, settings,
                       progress=(lambda plane: progress(next(steps), total, f"LQG plane {plane}"))
@@ -180,6 +207,5 @@ def build_lqg_table(model: FEModel, loads_n: Sequence[float] | None = None,
     table = GainTable(loads_n=loads, compensator=comp, c0_phi_inv=reduced.c0_phi_inv, design=design,
                       schedule=schedule, model_parameters=model.params, tool_version=tool_version())
     if check:
-        table = replace(table, checks=closed_loop_checks(model, table, progress, 2, total))
-        table = replace(table, forced=force and not table.all_stable)
+        table = _checked(model, table, force, analyse_ride_through, progress, 2, total)
     return table

@@ -29,6 +29,12 @@ r = [y_k-1 .. y_k-nf] (x = [p; r], p the prediction of [s; w]), so with F = [b1 
 
 The LQR ignores w (it does not act on the plant); the integral action keeps the raw y.
 
+The strain prediction (``Compensator.predict``, for a sample that does not arrive) is the
+strain the estimator expects: without the FIR (x = p, Cf = b0 Cs) y_hat = Cf p, so that
+x <- A x + B y_hat + E u = Phi p + Gamma u, the time update without a measurement; with the FIR
+the raw strain whose filtered value is the expected one, y_hat = (Cf p - F r) / b0, so that
+yf = Cf p, s_hat = p and again p <- Phi p + Gamma u (and r <- [y_hat, r..]).
+
 Scaling: scipy's discrete Riccati solvers fail on this model in SI modal units; the design is
 solved with displacements scaled to 1e-6 modal units, velocities to 1e-6 times each mode's
 angular frequency, integrals to 1e-9 and forces in N, then transformed back.
@@ -241,12 +247,14 @@ def _with_fir(sm: SampledDesignModel, fir) -> tuple[np.ndarray, np.ndarray, np.n
 
 def plane_design(pm: PlaneModel, axial_load_n: float, period_s: float, chain: IOChain, h: np.ndarray,
                  settings: LqgSettings):
-    """Compensator matrices (A, B, E, C, D, Ki) of one plane at one load.
+    """Compensator matrices (A, B, E, C, D, Ki) and the strain prediction P of one plane at one
+    load.
 
     With the strain FIR (nf = len(strain_fir) - 1 > 0) the compensator state is
     [p (the prediction of [s; w]), r (the raw past strains y_k-1 .. y_k-nf)]:
     yf = b0 y + F r, s_hat = p + M (yf - Cf p), u = -Kx s_hat - Kxi xi,
-    p <- Phi s_hat + Gamma u_applied, r <- [y, r_1 .. r_nf-1]."""
+    p <- Phi s_hat + Gamma u_applied, r <- [y, r_1 .. r_nf-1]; P = [Cf, -F] / b0.
+    Without it the state is p and P = Cf."""
     fir = tuple(float(b) for b in settings.strain_fir)
     nf = len(fir) - 1
     sm = sampled_model(pm, axial_load_n, period_s, chain)
@@ -301,7 +309,7 @@ def plane_design(pm: PlaneModel, axial_load_n: float, period_s: float, chain: IO
     mk = mk_scaled * sc[:, None]
     i_mc = np.eye(na) - mk @ cf
     if nf == 0:
-        return (phi @ i_mc, phi @ mk, gamma, kx @ i_mc, kx @ mk, kxi)
+        return (phi @ i_mc, phi @ mk, gamma, kx @ i_mc, kx @ mk, kxi, cf.copy())
     b0 = fir[0]
     f = np.hstack([fir[j] * np.eye(2) for j in range(1, nf + 1)])      # [2 x 2 nf]
     nr = 2 * nf
@@ -317,7 +325,8 @@ def plane_design(pm: PlaneModel, axial_load_n: float, period_s: float, chain: IO
     e[:na] = gamma
     c = np.hstack([kx @ i_mc, kx @ mk @ f])
     d = b0 * kx @ mk
-    return (a, b, e, c, d, kxi)
+    predict = np.hstack([cf, -f]) / b0
+    return (a, b, e, c, d, kxi, predict)
 
 
 def design(model: FEModel, loads_n, sample_rate_hz: float, chain: IOChain, h: np.ndarray,
@@ -345,12 +354,14 @@ def design(model: FEModel, loads_n, sample_rate_hz: float, chain: IOChain, h: np
     nc = ny + nz
     g = len(loads)
     mats = {k: np.zeros(s) for k, s in (("a", (g, nc, nc)), ("b", (g, nc, 4)), ("e", (g, nc, 4)),
-                                         ("c", (g, 4, nc)), ("d", (g, 4, 4)), ("ki", (g, 4, 4)))}
+                                         ("c", (g, 4, nc)), ("d", (g, 4, 4)), ("ki", (g, 4, 4)),
+                                         ("predict", (g, 4, nc)))}
     states = {"y": list(range(ny)), "z": list(range(ny, nc))}
     for p in ("y", "z"):
         s = np.asarray(states[p])
         io = list(PLANE_CHANNELS[p])
-        for i, (a, b, e, c, d, ki) in enumerate(per_plane[p]):
+        for i, (a, b, e, c, d, ki, predict) in enumerate(per_plane[p]):
+            mats["predict"][i][np.ix_(io, s)] = predict
             mats["a"][i][np.ix_(s, s)] = a
             mats["b"][i][np.ix_(s, io)] = b
             mats["e"][i][np.ix_(s, io)] = e

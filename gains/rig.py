@@ -55,10 +55,16 @@ class RigPlane:
             self._critical = critical_load(self.model, self.plane)
         return self._critical
 
-    def sampled(self, axial_load_n: float):
-        """(DelayedZOH, C) of the plane with its I/O chain at ``axial_load_n``."""
+    def continuous(self, axial_load_n: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(A, B, C) of the plane with its I/O chain's filters at ``axial_load_n``, before
+        sampling (the delay is the sampling's)."""
         a = self._a0 + axial_load_n * self._a1
         a, b, c, _ = with_filters(a, self._b, self._c, self.chain, n_control=2)
+        return a, b, c
+
+    def sampled(self, axial_load_n: float):
+        """(DelayedZOH, C) of the plane with its I/O chain at ``axial_load_n``."""
+        a, b, c = self.continuous(axial_load_n)
         return delayed_zoh(a, b, self.period_s, self.chain.delay_samples), c
 
     def loop_matrix(self, axial_load_n: float, comp: CompensatorPoint, h: np.ndarray,

@@ -18,6 +18,12 @@ cut-off under ``design``) and ``lqg`` (a model-based design; its parameters unde
 A table the controller may run has a content hash that matches, a closed-loop check, and
 no unstable point in it (nor ``--force``): ``load_table`` refuses anything else unless
 asked only to read it (``verify=False``, for ``beamctl gains check`` and ``show``).
+
+Optional, and absent from tables written before them: the compensator's strain prediction
+``compensator.predict`` (P [G x 4 x n], y_hat = P x_c, with which the engine bridges a missing
+sample; absent: hold the last measured strains) and the loop's ride-through limits
+``ride_through`` (gains/ridethrough.py: the longest gap of missing samples and the largest extra
+output delay the loop survives at its worst check load, and the limits the engine uses).
 """
 
 from __future__ import annotations
@@ -38,6 +44,7 @@ from beamctl.config.schema import ConfigError, read_yaml
 from beamctl.gains.compensator import MATRICES, Compensator
 from beamctl.gains.discrete import LoopCheck
 from beamctl.gains.lqr import N_INPUTS, N_STATES, Weights
+from beamctl.gains.ridethrough import RideThrough, limits
 from beamctl.models.iochain import IOChain, io_chain
 from beamctl.models.params import ModelParameters, parameters_from_dict
 
@@ -145,6 +152,9 @@ class GainTable:
     # read from a file whose content matches its SHA-256 (a table built in memory: True)
     intact: bool = True
     gains: np.ndarray | None = None   # K [G x 4 x 12] of an integral-lqr design
+    # the ride-through limits found when it was built (gains.ridethrough); None: not analysed
+    # (built without the check, unstable, or written before the analysis existed)
+    ride_through: RideThrough | None = None
 
     def __post_init__(self) -> None:
         comp = self.compensator
@@ -202,7 +212,9 @@ class GainTable:
                        "h": np.asarray(comp.h, dtype=float).tolist(),
                        "start": np.asarray(comp.start, dtype=float).tolist(),
                        **{m: np.asarray(getattr(comp, m), dtype=float).tolist() for m in MATRICES}}
-        return {
+        if comp.predict is not None:
+            compensator["predict"] = np.asarray(comp.predict, dtype=float).tolist()
+        content = {
             "format": FORMAT,
             "created": self.created,
             "tool_version": self.tool_version,
@@ -219,6 +231,9 @@ class GainTable:
                 "points": [_check_point(c) for c in self.checks],
             },
         }
+        if self.ride_through is not None:
+            content["ride_through"] = self.ride_through.to_dict()
+        return content
 
 
 def _plain(value: Any) -> Any:
@@ -409,6 +424,8 @@ def load_table(path: str | Path, model: ModelParameters | None = None, *,
     if not isinstance(forced, bool):
         raise GainTableError("check.forced", forced, "true or false", source)
 
+    ride_through = _ride_through(data, source) if "ride_through" in data else None
+
     stored = data.get(CONTENT_HASH)
     content = content_sha256(data)
     table = GainTable(
@@ -416,7 +433,7 @@ def load_table(path: str | Path, model: ModelParameters | None = None, *,
         schedule=ScheduleSettings(mode=mode, load_filter_hz=load_filter, hysteresis_n=hysteresis),
         model_parameters=params, checks=tuple(checks), forced=forced,
         tool_version=str(data.get("tool_version", "")), created=str(data.get("created", "")),
-        intact=stored == content)
+        intact=stored == content, ride_through=ride_through)
     if verify:
         if not table.intact:
             found = f"{stored[:16]}..." if isinstance(stored, str) else stored
@@ -477,6 +494,8 @@ def _compensator(data: dict, n_points: int, period_s: float, source: str) -> Com
         raise GainTableError("compensator.start", [], "at least one compensator state", source)
     shapes = {"a": (n, n), "b": (n, 4), "e": (n, 4), "c": (4, n), "d": (4, 4), "ki": (4, 4)}
     matrices = {m: _array(data, f"compensator.{m}", (n_points, *shapes[m]), source) for m in MATRICES}
+    predict = (_array(data, "compensator.predict", (n_points, 4, n), source)
+               if "predict" in _field(data, "compensator", source) else None)
     h = _array(data, "compensator.h", (4, 4), source)
     raw = _field(data, "compensator.plane_states", source)
     expected = f"a mapping y: [...], z: [...] that splits the states 0..{n - 1} between the planes"
@@ -487,4 +506,53 @@ def _compensator(data: dict, n_points: int, period_s: float, source: str) -> Com
     if sorted(raw["y"] + raw["z"]) != list(range(n)):
         raise GainTableError("compensator.plane_states", _short(raw), expected, source)
     return Compensator(**matrices, h=h, start=start, period_s=period_s,
-                       plane_states={"y": list(raw["y"]), "z": list(raw["z"])})
+                       plane_states={"y": list(raw["y"]), "z": list(raw["z"])}, predict=predict)
+
+
+def _ride_through(data: dict, source: str) -> RideThrough:
+    """The ``ride_through`` section: every field present and of its kind, the engine's limits
+    the analysis' divided by the margin."""
+    section = data["ride_through"]
+    if not isinstance(section, dict):
+        raise GainTableError("ride_through", _short(section), "a mapping of the ride-through limits",
+                             source)
+    unknown = sorted(set(section) - set(RideThrough.FIELDS))
+    if unknown:
+        raise GainTableError(f"ride_through.{unknown[0]}", _short(section[unknown[0]]),
+                             f"only the fields {', '.join(RideThrough.FIELDS)}", source)
+
+    def count(name: str, positive: bool = False) -> int:
+        raw = _field(data, f"ride_through.{name}", source)
+        if isinstance(raw, bool) or not isinstance(raw, int) or raw < (1 if positive else 0):
+            raise GainTableError(f"ride_through.{name}", raw,
+                                 "a whole number of samples" + (" > 0" if positive else " >= 0"), source)
+        return raw
+
+    def number(name: str, low: float, open_low: bool = False) -> float:
+        value = _number(data, f"ride_through.{name}", source, positive=False)
+        if value < low or (open_low and value == low):
+            raise GainTableError(f"ride_through.{name}", value,
+                                 f"a number {'>' if open_low else '>='} {low:g}", source)
+        return value
+
+    delay_load = _field(data, "ride_through.delay_load_N", source)
+    if delay_load is not None:
+        delay_load = _number(data, "ride_through.delay_load_N", source, positive=False)
+    rt = RideThrough(growth_limit=number("growth_limit", 1.0, open_low=True),
+                     margin=number("margin", 1.0), max_gap_samples=count("max_gap_samples"),
+                     gap_limit_samples=count("gap_limit_samples"),
+                     gap_load_n=_number(data, "ride_through.gap_load_N", source, positive=False),
+                     gap_cap_samples=count("gap_cap_samples", positive=True),
+                     max_extra_delay_samples=number("max_extra_delay_samples", 0.0),
+                     answer_budget_periods=number("answer_budget_periods", 0.0),
+                     delay_load_n=delay_load, delay_step_samples=number("delay_step_samples", 0.0, True),
+                     delay_cap_samples=number("delay_cap_samples", 0.0, True),
+                     elapsed_s=number("elapsed_s", 0.0))
+    gap_limit, budget = limits(rt.max_gap_samples, rt.max_extra_delay_samples, rt.margin)
+    if rt.gap_limit_samples != gap_limit:
+        raise GainTableError("ride_through.gap_limit_samples", rt.gap_limit_samples,
+                             f"floor(max_gap_samples / margin) = {gap_limit}", source)
+    if not math.isclose(rt.answer_budget_periods, budget, rel_tol=1e-12, abs_tol=1e-15):
+        raise GainTableError("ride_through.answer_budget_periods", rt.answer_budget_periods,
+                             f"max_extra_delay_samples / margin = {budget:g}", source)
+    return rt
