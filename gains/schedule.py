@@ -71,6 +71,8 @@ class GainSchedule:
         n = compensator.n_states
         self.n_states = n
         self._slopes = {m: _stacked(getattr(compensator, m), loads)[1] for m in MATRICES}
+        if compensator.predict is not None:
+            self._slopes["predict"] = _stacked(compensator.predict, loads)[1]
 
         g = len(self._loads)
         output = np.zeros((g, 4, N_SIGNALS + n))       # -[D Ki 0 C] over s
@@ -168,10 +170,12 @@ class GainSchedule:
     # -- for the checks and plots ---------------------------------------------------------------
     def matrices_at(self, load_n: float) -> CompensatorPoint:
         """The matrices at a load reached from below and settled, by the rule the products
-        follow: interpolated, or in ``paper`` mode those of the grid point at or above it. A
-        new CompensatorPoint; the schedule's own state (filter, grid point) is untouched."""
+        follow: interpolated, or in ``paper`` mode those of the grid point at or above it (the
+        strain prediction likewise, where the table has one). A new CompensatorPoint; the
+        schedule's own state (filter, grid point) is untouched."""
         i, offset = self._settled(float(load_n))
         comp = self.compensator
+        names = MATRICES if comp.predict is None else (*MATRICES, "predict")
         if offset == 0.0:
-            return CompensatorPoint(*(getattr(comp, m)[i].copy() for m in MATRICES))
-        return CompensatorPoint(*(getattr(comp, m)[i] + offset * self._slopes[m][i] for m in MATRICES))
+            return CompensatorPoint(**{m: getattr(comp, m)[i].copy() for m in names})
+        return CompensatorPoint(**{m: getattr(comp, m)[i] + offset * self._slopes[m][i] for m in names})
