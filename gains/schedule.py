@@ -100,6 +100,22 @@ class GainSchedule:
         self.out_of_range = False
         self.reset(self._first)
 
+    @property
+    def alpha(self) -> float:
+        """The load filter's coefficient per sample: f += alpha (load - f)."""
+        return self._alpha
+
+    @property
+    def half_band_n(self) -> float:
+        """Half the hysteresis band of ``paper`` mode (N)."""
+        return self._half_band
+
+    @staticmethod
+    def stacked_blocks(matrices: np.ndarray, loads_n) -> list[np.ndarray]:
+        """Per grid point the block [M_i; S_i] of ``matrices`` [G x ...] over ``loads_n`` (S_i
+        the slope to the next point, zero at the last), as the products use them."""
+        return _stacked(np.asarray(matrices, dtype=float), np.asarray(loads_n, dtype=float))[0]
+
     @classmethod
     def from_table(cls, table: GainTable) -> GainSchedule:
         return cls(table.loads_n, table.compensator, table.schedule, table.design.sample_rate_hz)

@@ -34,7 +34,10 @@ HAL_DEFAULTS: dict[str, Any] = {
             "actuators": {"force_constant_n_per_v": 3.0, "bias_voltage_v": 75.0,
                           "orientation_deg": [90.0, 90.0]}},
     "can": {"interface": "socketcan", "channel": "can0", "bitrate_bit_s": 1_000_000, "fd": True,
-            "data_bitrate_bit_s": 4_000_000, "dbc": "", "record": "", "rate_tolerance": 0.05},
+            "data_bitrate_bit_s": 4_000_000, "dbc": "", "record": "", "rate_tolerance": 0.05,
+            # poll the bus for the last spin_s before each sample is due instead of sleeping
+            # (hal/can_backend.py): the answer's latency for a share of a CPU; 0 sleeps always
+            "spin_s": 5e-5},
 }
 
 # Keys renamed to carry their unit: a file that still sets an old one is refused, naming the new.
@@ -52,7 +55,7 @@ _SCHEMA = {
                           "orientation_deg": number_list(number("deg"), 2, "angles (supports A and B)")}},
     "can": {"interface": text(), "channel": text(), "bitrate_bit_s": positive("bit/s"), "fd": boolean(),
             "data_bitrate_bit_s": positive("bit/s"), "dbc": path(), "record": path(),
-            "rate_tolerance": number(low=0.0, high=0.5)},
+            "rate_tolerance": number(low=0.0, high=0.5), "spin_s": number("s", low=0.0, high=0.01)},
 }
 
 

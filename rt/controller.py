@@ -120,9 +120,8 @@ class PreparedTable:
     half_band_n: float
     first_n: float
     last_n: float
-    gap_limit: int              # samples missing in a row the loop rides through
-    late_limit: int             # late answers in a row it rides through
-    budget_s: float             # an answer later than this after its sample is late
+    limits: np.ndarray          # per grid point: samples missing and late answers in a row the loop
+                                # rides through, the answer budget in periods (ride_through_limits)
     c0_phi_inv: np.ndarray
 
 
@@ -170,33 +169,46 @@ def plane_blocks(stacked: list[np.ndarray], key: str, ny: int, n: int) -> np.nda
         cols = states if key == "pred" else PLANE_SIGNALS[p] + [12 + i for i in states]
         for block in stacked:
             half = block.shape[0] // 2
-            out.append(np.vstack([block[:half][np.ix_(rows, cols)], block[half:][np.ix_(rows, cols)]]).ravel())
+            sub = np.ix_(rows, cols)
+            out.append(np.vstack([block[:half][sub], block[half:][sub]]).ravel())
     return np.concatenate(out)
 
 
-def ride_through_limits(table: GainTable, config: ControllerConfig) -> tuple[int, int, float]:
-    """(samples missing in a row, late answers in a row, answer budget in periods) that the
-    loop rides through: the table's ride-through analysis (stored with the table when it was
-    built), tightened by the configuration where it sets a smaller value; a configured value
-    beyond the analysis is refused (ConfigError)."""
+def ride_through_limits(table: GainTable, config: ControllerConfig) -> np.ndarray:
+    """Per grid point of ``table``: (samples missing in a row, late answers in a row, answer
+    budget in periods) that the loop rides through, [G x 3]. From the table's ride-through
+    analysis (stored with the table when it was built: per load where it gives them, else its
+    worst load's), tightened by the configuration where it sets a smaller value; a configured
+    value beyond the analysis at every load is refused (ConfigError)."""
     s = config.safety
+    g = len(table.loads_n)
     rt = getattr(table, "ride_through", None)
     if rt is None:
-        gap, late, budget = LEGACY_GAP_LIMIT, LEGACY_LATE_LIMIT, LEGACY_BUDGET_PERIODS
+        gap = np.full(g, LEGACY_GAP_LIMIT, dtype=float)
+        budget = np.full(g, LEGACY_BUDGET_PERIODS)
+        late = np.full(g, LEGACY_LATE_LIMIT, dtype=float)
         source = "the limits used without a ride-through analysis in the table"
     else:
-        gap, budget = int(rt.gap_limit_samples), float(rt.answer_budget_periods)
-        late = gap
+        per_load = getattr(rt, "gap_limits_samples", None)
+        gap = (np.asarray(per_load, dtype=float) if per_load is not None
+               else np.full(g, rt.gap_limit_samples, dtype=float))
+        budgets = getattr(rt, "answer_budgets_periods", None)
+        budget = (np.asarray(budgets, dtype=float) if budgets is not None
+                  else np.full(g, rt.answer_budget_periods))
+        late = gap.copy()
         source = "the gain table's ride-through analysis"
-    for key, value, limit in (("stale_periods", s.stale_periods, gap), ("late_answer_streak",
-                              s.late_answer_streak, late), ("answer_budget_periods", s.answer_budget_periods,
-                                                            budget)):
-        if value is not None and value > limit:
+    limits = np.column_stack([gap, late, budget])
+    configured = ((0, "stale_periods", s.stale_periods), (1, "late_answer_streak", s.late_answer_streak),
+                  (2, "answer_budget_periods", s.answer_budget_periods))
+    for col, key, value in configured:
+        if value is None:
+            continue
+        most = float(limits[:, col].max())
+        if value > most:
             raise ConfigError(f"controller.safety.{key}", value,
-                              f"at most {limit:g}, what {source} allows (a smaller value tightens it)")
-    return (gap if s.stale_periods is None else s.stale_periods,
-            late if s.late_answer_streak is None else s.late_answer_streak,
-            budget if s.answer_budget_periods is None else s.answer_budget_periods)
+                              f"at most {most:g}, what {source} allows (a smaller value tightens it)")
+        np.minimum(limits[:, col], value, out=limits[:, col])
+    return limits
 
 
 class Controller:
@@ -254,6 +266,7 @@ class Controller:
         self.safety = Safety(self, iv, fv, tuple(s.load_range), s.ramp_time)
         self.supervisor = self.safety.supervisor
         self._bind(self.prepare_table(table))
+        self._command(e.C_RESET_SCHEDULE)       # the limits at the first grid point until a load is seen
         self.voltages[:] = self._bias
         self.record[I_LOAD] = np.nan        # no load seen yet (a start then keeps the schedule's)
         self.record[I_TIME] = np.nan
@@ -270,7 +283,10 @@ class Controller:
         if table.model_sha256 != self.model_sha256:
             raise ValueError(f"the table was designed for the model with SHA-256 {table.model_sha256}, "
                              f"the controller runs the model with SHA-256 {self.model_sha256}")
-        gap, late, budget_periods = ride_through_limits(table, self.config)
+        limits = ride_through_limits(table, self.config)
+        # per grid interval (the engine's index): the lesser of its two ends
+        interval = np.minimum(limits, np.vstack([limits[1:], limits[-1:]]))
+        interval[:, 2] *= self.period
         comp = table.compensator
         schedule = GainSchedule.from_table(table)
         n = comp.n_states
@@ -295,6 +311,7 @@ class Controller:
             "pred": flat.get("pred", np.zeros(0)),
             "start": np.asarray(comp.start, dtype=float),
             "exc": self._excitation if self._excitation is not None else np.zeros(0),
+            "lim": interval,
         }
         offsets, at = {}, 0
         for key, part in parts.items():
@@ -314,14 +331,13 @@ class Controller:
         put(e.V_NY, 0 if ny is None else ny)
         for slot, key in ((e.O_C0, "c0"), (e.O_TH, "th"), (e.O_FORCE, "force"), (e.O_COEF, "coef"),
                           (e.O_LOADS, "loads"), (e.O_OUT, "out"), (e.O_UPD, "upd"), (e.O_INT, "int"),
-                          (e.O_PRED, "pred"), (e.O_START, "start"), (e.O_EXC, "exc")):
+                          (e.O_PRED, "pred"), (e.O_START, "start"), (e.O_EXC, "exc"), (e.O_LIM, "lim")):
             put(slot, offsets[key])
         return PreparedTable(table=table, schedule=schedule,
                              buffer=np.zeros(N_COLUMNS + n + e.scratch_size(n)), mats=mats,
                              table_iv=table_iv, alpha=schedule.alpha, half_band_n=schedule.half_band_n,
                              first_n=float(table.loads_n[0]), last_n=float(table.loads_n[-1]),
-                             gap_limit=int(gap), late_limit=int(late), budget_s=budget_periods * self.period,
-                             c0_phi_inv=np.ascontiguousarray(table.c0_phi_inv))
+                             limits=limits, c0_phi_inv=np.ascontiguousarray(table.c0_phi_inv))
 
     def use_table(self, prepared: PreparedTable) -> None:
         """Run the table of ``prepared`` (``prepare_table``) from the next step on. Only at bias
@@ -336,7 +352,7 @@ class Controller:
         np.copyto(buffer[:N_COLUMNS], self.record)
         buffer[N_COLUMNS:] = 0.0
         self._bind(prepared)
-        self._command(e.C_RESET_SCHEDULE)
+        self._command(e.C_RESET_SCHEDULE)       # the schedule and the limits at the latest load
 
     def _bind(self, p: PreparedTable) -> None:
         """The table's arrays and settings into the engine, and the views of its buffer: the
@@ -346,10 +362,8 @@ class Controller:
         self._prepared = p
         iv, fv = self.iv, self.fv
         iv[e.TABLE_IV] = p.table_iv
-        iv[e.V_GAP_LIMIT], iv[e.V_LATE_LIMIT] = p.gap_limit, p.late_limit
         fv[e.P_ALPHA], fv[e.P_HALF_BAND] = p.alpha, p.half_band_n
         fv[e.P_FIRST], fv[e.P_LAST] = p.first_n, p.last_n
-        fv[e.P_BUDGET_S] = p.budget_s
         self._mats = p.mats
         buffer = p.buffer
         self._buffer = buffer

@@ -111,8 +111,8 @@ S_INIT, S_ARMED, S_RUNNING, S_FAULT, S_STOPPING, S_STOPPED = 0, 1, 2, 3, 4, 5
  V_RAMP_SAMPLES, V_EXC_ROWS) = range(17, 27)
 # settings of the gain table in use (copied from its ``table_iv`` by ``use_table``)
 (V_PAPER, V_N_LOADS, V_N_X, V_PREDICT, O_C0, O_TH, O_FORCE, O_COEF, O_LOADS, O_OUT, O_UPD, O_INT, O_PRED,
- O_START, O_EXC, V_SPLIT, V_NY) = range(27, 44)
-N_IV = 44
+ O_START, O_EXC, V_SPLIT, V_NY, O_LIM) = range(27, 45)
+N_IV = 45
 TABLE_IV = slice(V_PAPER, N_IV)
 
 # -- fv: float state, settings, inputs -------------------------------------------------------------------
@@ -127,7 +127,8 @@ X_DU = 24                                       # 4: what it does to u
 IN_Y = 47                                       # 4 strains
 N_FV = 51
 
-# Scratch after x_c in ``buf``: a plane's gathered signals (6 + n), a product's result (n + 4). ``V_SPLIT`` 1: the compensator's two bending planes do not couple and their
+# Scratch after x_c in ``buf``: a plane's gathered signals (6 + n), a product's result (n + 4).
+# ``V_SPLIT`` 1: the compensator's two bending planes do not couple and their
 # states are contiguous (plane y the first ``V_NY``): each product runs per plane on the plane's
 # six signals and its own states, on blocks stored per plane ([M_i; S_i] of the plane's rows and
 # columns), half the arithmetic of the whole matrices; 0: the whole matrices.
@@ -202,6 +203,15 @@ def _trip(buf, iv, fv, fault, value, limit, channel):
     return True
 
 
+def _limits(iv, fv, mats):
+    """The ride-through limits at the grid point in use (the table's, per grid interval: the
+    lesser of its two ends): samples missing in a row, late answers in a row, answer budget."""
+    o = iv[O_LIM] + 3 * iv[V_INDEX]
+    iv[V_GAP_LIMIT] = int(mats[o])
+    iv[V_LATE_LIMIT] = int(mats[o + 1])
+    fv[P_BUDGET_S] = mats[o + 2]
+
+
 def _settle(iv, fv, mats, load):
     """Grid point and offset at a load reached from below and settled (gains/schedule.py)."""
     n = iv[V_N_LOADS]
@@ -213,6 +223,7 @@ def _settle(iv, fv, mats, load):
             i += 1
         iv[V_INDEX] = min(max(i, 0), last)
         fv[X_OFFSET] = 0.0
+        _limits(iv, fv, mats)
         return
     if load <= mats[o]:
         iv[V_INDEX] = 0
@@ -226,6 +237,7 @@ def _settle(iv, fv, mats, load):
             i += 1
         iv[V_INDEX] = i
         fv[X_OFFSET] = load - mats[o + i]
+    _limits(iv, fv, mats)
 
 
 def _reset_schedule(iv, fv, mats, load):
@@ -254,7 +266,9 @@ def _follow(iv, fv, mats, load):
             i += 1
         while i > 0 and filtered < mats[o + i - 1] - half:
             i -= 1
-        iv[V_INDEX] = i
+        if i != iv[V_INDEX]:
+            iv[V_INDEX] = i
+            _limits(iv, fv, mats)
     else:
         _settle(iv, fv, mats, filtered)
 
@@ -765,6 +779,7 @@ _at_bias = _jit(_at_bias)
 _ramp_begin = _jit(_ramp_begin)
 _ramp_advance = _jit(_ramp_advance)
 _trip = _jit(_trip)
+_limits = _jit(_limits)
 _settle = _jit(_settle)
 _reset_schedule = _jit(_reset_schedule)
 _follow = _jit(_follow)

@@ -415,7 +415,6 @@ class ControlLoop:
         period = self.period
         timer = self.pacing == "timer"
         read_timeout = 0.5 * period if timer else 1.5 * period
-        stale_s = (safety.gap_limit + 1.0) * period     # beyond: more samples missing than ride through
         record = c.record
         next_deadline = clock() + period
         self._last_sample = clock()         # the arming sample
@@ -442,7 +441,9 @@ class ControlLoop:
             if not timer:
                 state = c.state
                 if state == State.RUNNING:
-                    # wait no longer than the stale-input deadline (and a little, to see it pass)
+                    # wait no longer than the stale-input deadline (and a little, to see it pass):
+                    # beyond it more samples are missing than the loop rides through at this load
+                    stale_s = (safety.gap_limit + 1.0) * period
                     timeout = min(read_timeout, max(self._last_sample + stale_s - t0, 0.1 * period))
                 elif state in (State.FAULT, State.STOPPING) and not c.at_bias:
                     timeout = period    # a ramp without samples still takes its time, not 1.5x

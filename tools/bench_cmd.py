@@ -220,7 +220,10 @@ def can_latency(samples: int = 10_000, load_n: float = 2000.0) -> dict:
     config = controller_config({"pacing": "sample"})
     interface, channel = can_transport()
     use_fd = bus_budget(Contract(), rate, 1e6).load > BUS_LIMIT
-    backend = CanBackend(rate, interface, channel, rate_tolerance=0.0, fd=use_fd,
+    from beamctl.hal.config import hal_config
+
+    spin_s = hal_config({}).can["spin_s"]           # the service's default
+    backend = CanBackend(rate, interface, channel, rate_tolerance=0.0, fd=use_fd, spin_s=spin_s,
                          data_bitrate_bit_s=4e6 if use_fd else None)
     controller = Controller(table, config)
     ages = np.full(samples, np.nan)
@@ -282,7 +285,8 @@ def can_latency(samples: int = 10_000, load_n: float = 2000.0) -> dict:
             "bus": backend.budget.description, "bus_load_percent": 100 * backend.budget.load,
             "max_rate_classic_1M_Hz": budget.max_sample_rate_hz,
             "max_rate_fd_1M_4M_Hz": fd.max_sample_rate_hz,
-            "hal": {k: v for k, v in result.hal.items() if isinstance(v, int | float)}}
+            "hal": {k: v for k, v in result.hal.items() if isinstance(v, int | float)},
+            "loop_timing": {k: result.timing[k] for k in ("read", "compute", "write", "answer_age")}}
 
 
 def sim_realtime_factor() -> dict:

@@ -305,7 +305,7 @@ def build_hal(cfg: ServiceConfig, table: GainTable, plant: Plant | None = None) 
     return CanBackend(table.design.sample_rate_hz, c["interface"], c["channel"],
                       bitrate_bit_s=c["bitrate_bit_s"], fd=c["fd"],
                       data_bitrate_bit_s=c["data_bitrate_bit_s"], dbc=c["dbc"] or None,
-                      record=c["record"] or None, rate_tolerance=c["rate_tolerance"])
+                      record=c["record"] or None, rate_tolerance=c["rate_tolerance"], spin_s=c["spin_s"])
 
 
 def check_voltage_range(cfg: ServiceConfig, hal: HalBase) -> None:
