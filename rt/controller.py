@@ -113,8 +113,9 @@ class PreparedTable:
 
     table: GainTable
     schedule: GainSchedule
-    buffer: np.ndarray          # the record, the compensator's state, the engine's scratch
-    mats: np.ndarray            # every matrix of the table, flat (rt/engine.py ``O_*``)
+    core: np.ndarray            # the engine's one array (rt/engine.py ``core_array``): the record, the
+                                # compensator's state and scratch, fv, iv, then every matrix of the table
+    nb: int                     # the length of its first part (the record, x_c, scratch)
     table_iv: np.ndarray        # the engine's per-table integer settings (``engine.TABLE_IV``)
     alpha: float                # the load filter's coefficient
     half_band_n: float
@@ -334,7 +335,8 @@ class Controller:
                           (e.O_PRED, "pred"), (e.O_START, "start"), (e.O_EXC, "exc"), (e.O_LIM, "lim")):
             put(slot, offsets[key])
         return PreparedTable(table=table, schedule=schedule,
-                             buffer=np.zeros(N_COLUMNS + n + e.scratch_size(n)), mats=mats,
+                             core=e.core_array(N_COLUMNS + n + e.scratch_size(n), mats),
+                             nb=N_COLUMNS + n + e.scratch_size(n),
                              table_iv=table_iv, alpha=schedule.alpha, half_band_n=schedule.half_band_n,
                              first_n=float(table.loads_n[0]), last_n=float(table.loads_n[-1]),
                              limits=limits, c0_phi_inv=np.ascontiguousarray(table.c0_phi_inv))
@@ -348,7 +350,7 @@ class Controller:
         if state not in (State.ARMED, State.FAULT) or not self.at_bias:
             raise TransitionError(f"cannot change the gain table in state {state.name}"
                                   + ("" if self.at_bias else " before the voltages have ramped to bias"))
-        buffer = prepared.buffer
+        buffer, _, _, _ = e.core_views(prepared.core, prepared.nb)
         np.copyto(buffer[:N_COLUMNS], self.record)
         buffer[N_COLUMNS:] = 0.0
         self._bind(prepared)
@@ -360,12 +362,18 @@ class Controller:
         self.table = p.table
         self.schedule = p.schedule
         self._prepared = p
-        iv, fv = self.iv, self.fv
+        buffer, fv, iv, mats = e.core_views(p.core, p.nb)
+        np.copyto(fv, self.fv)          # the controller's state and settings move with it
+        np.copyto(iv, self.iv)
+        self.iv, self.fv = iv, fv
+        self.safety.iv, self.safety.fv = iv, fv
+        self.allocator.scales = fv[e.X_SCALE_A:e.X_SCALE_B + 1]
+        self._core = p.core
+        self._nb = p.nb
         iv[e.TABLE_IV] = p.table_iv
         fv[e.P_ALPHA], fv[e.P_HALF_BAND] = p.alpha, p.half_band_n
         fv[e.P_FIRST], fv[e.P_LAST] = p.first_n, p.last_n
-        self._mats = p.mats
-        buffer = p.buffer
+        self._mats = mats
         self._buffer = buffer
         r = buffer[:N_COLUMNS]
         self.record = r
@@ -438,21 +446,12 @@ class Controller:
         """One control period. ``sample`` None means no new sample arrived; ``silent_periods`` is
         then the time since the last one in periods (None: one more period). Returns the six
         voltages to write (the controller's own array)."""
-        fv = self.fv
         if sample is None:
-            fv[e.IN_SILENT] = -1.0 if silent_periods is None else silent_periods
-            e.cycle(self._buffer, self.iv, fv, self._mats, 0)
+            self.fv[e.IN_SILENT] = -1.0 if silent_periods is None else silent_periods
+            e.cycle(self._buffer, self.iv, self.fv, self._mats, 0)
         else:
-            fv[e.IN_TIME] = sample.timestamp
-            fv[e.IN_SEQUENCE] = sample.sequence
-            fv[e.IN_LOAD] = sample.axial_load
-            fv[e.IN_MISSED] = sample.missed
-            y = sample.strains
-            fv[e.IN_Y] = y[0]
-            fv[e.IN_Y + 1] = y[1]
-            fv[e.IN_Y + 2] = y[2]
-            fv[e.IN_Y + 3] = y[3]
-            e.cycle(self._buffer, self.iv, fv, self._mats, 1)
+            e.sample_cycle(self._core, self._nb, sample.timestamp, sample.sequence, sample.axial_load,
+                           sample.missed, sample.strains)
         return self.voltages
 
     def answer_sent(self, age_s: float) -> None:

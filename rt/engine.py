@@ -637,6 +637,39 @@ def cycle(buf, iv, fv, mats, sample):
     return iv[V_STATE]
 
 
+def core_array(buffer_size, mats):
+    """The engine's one array for a gain table: ``buf`` (``buffer_size``), ``fv``, ``iv`` (its
+    int64 values in float64 slots, read through a view), then ``mats``. One array is one
+    argument to unbox per call (numba's dispatch costs per argument)."""
+    core = np.zeros(buffer_size + N_FV + N_IV + mats.size)
+    core[buffer_size + N_FV + N_IV:] = mats
+    return core
+
+
+def core_views(core, buffer_size):
+    """(buf, fv, iv, mats) of a ``core_array`` whose buffer is ``buffer_size`` long: views,
+    sharing its memory."""
+    b = buffer_size
+    return core[:b], core[b:b + N_FV], core[b + N_FV:b + N_FV + N_IV].view(np.int64), core[b + N_FV + N_IV:]
+
+
+def sample_cycle(core, nb, time_s, sequence, load_n, missed, strains):
+    """``cycle`` on a new sample given as arguments, over a ``core_array`` whose buffer is ``nb``
+    long (the loop's call: one array to unbox, no Python writes into the inputs first). Returns
+    the state."""
+    buf = core[:nb]
+    fv = core[nb:nb + N_FV]
+    iv = core[nb + N_FV:nb + N_FV + N_IV].view(np.int64)
+    mats = core[nb + N_FV + N_IV:]
+    fv[IN_TIME] = time_s
+    fv[IN_SEQUENCE] = sequence
+    fv[IN_LOAD] = load_n
+    fv[IN_MISSED] = missed
+    for j in range(4):
+        fv[IN_Y + j] = strains[j]
+    return cycle(buf, iv, fv, mats, 1)
+
+
 def answered(buf, iv, fv, age_s):
     """The answer to the latest sample had been sent ``age_s`` after the sample arrived (NaN: not
     measured). Later than the budget it is late; more than ``late_limit`` late answers in a row
@@ -796,6 +829,7 @@ _check_inputs = _jit(_check_inputs)
 _bridge = _jit(_bridge)
 _control = _jit(_control)
 cycle = _jit(cycle)
+sample_cycle = _jit(sample_cycle)
 answered = _jit(answered)
 _clear = _jit(_clear)
 command = _jit(command)
