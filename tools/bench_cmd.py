@@ -385,7 +385,7 @@ def add_parser(sub) -> None:
     p.add_argument("--steps", type=steps, default=50_000, help="control steps to time (default 50000)")
     p.add_argument("--offline", action="store_true",
                    help="only the offline simulation: the experiment's run through the loop and the "
-                        "compiled kernel, per-sample cost and ratio (needs numba)")
+                        "compiled kernel, per-sample cost and ratio")
     p.add_argument("--repeat", type=number(low=1, integer=True), default=3,
                    help="rounds of --offline (default 3)")
     p.add_argument("--live", action="store_true",
@@ -409,11 +409,6 @@ def print_live_view_timing(lv: dict) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if args.offline:
-        from beamctl.config.schema import ConfigError
-        from beamctl.tools import simkernel
-
-        if not simkernel.available():
-            raise ConfigError("--offline", "numba missing", "numba installed: pip install 'beamctl[fast]'")
         result = offline_timing(args.repeat)
         if args.json:
             print(json.dumps(result, indent=1))

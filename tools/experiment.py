@@ -247,20 +247,15 @@ ENGINES = ("auto", "loop", "kernel")
 
 def check_engine(engine: str, telemetry: bool = False) -> str:
     """The engine a run will use: ``loop`` (every cycle through ``ControlLoop``) or ``kernel``
-    (tools/simkernel.py runs the uneventful cycles, the loop the rest). ``auto`` takes the
-    kernel where numba is installed and no telemetry is asked for."""
-    from beamctl.tools import simkernel
-
+    (tools/simkernel.py runs the cycles in one compiled loop, the loop a fault's ramp and what
+    needs Python). ``auto`` takes the kernel unless telemetry is asked for. Both run the
+    engine's compiled cycle."""
     if engine not in ENGINES:
         raise ConfigError("engine", engine, f"one of {', '.join(ENGINES)}")
     if engine == "auto":
-        return "kernel" if simkernel.available() and not telemetry else "loop"
-    if engine == "kernel":
-        if telemetry:
-            raise ConfigError("engine", engine, "'loop' or 'auto' with telemetry: the kernel records none")
-        if not simkernel.available():
-            raise ConfigError("engine", engine, "'loop' or 'auto': the kernel needs numba "
-                                                "(pip install 'beamctl[fast]')")
+        return "loop" if telemetry else "kernel"
+    if engine == "kernel" and telemetry:
+        raise ConfigError("engine", engine, "'loop' or 'auto' with telemetry: the kernel records none")
     return engine
 
 

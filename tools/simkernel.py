@@ -206,15 +206,6 @@ def kernel():
     return _kernel
 
 
-def available() -> bool:
-    """Whether the kernel can run (numba is part of the default install)."""
-    try:
-        import numba  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
 class Accelerator:
     """The ``ControlLoop`` hook that runs a simulated run's cycles in the kernel.
 

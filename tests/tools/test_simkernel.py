@@ -17,8 +17,6 @@ from beamctl.config.schema import ConfigError
 from beamctl.rt.loop import StopRequest
 from beamctl.tools.experiment import check_engine, experiment_config, experiment_tables, run_mode, summarise
 
-pytest.importorskip("numba", reason="the kernel is the 'fast' extra (numba)")
-
 # the load ramps fast from below the critical load, so a run crosses it within 3 s of plant time:
 # control, saturation at 150 V, the saturation fault, the ramp to bias, the beam let go
 FAST_RAMP = {"plant": {"load": {"start": 2000.0, "rate": 600.0, "hold": 0.05}}}
