@@ -845,6 +845,27 @@ def source_digest() -> str:
         return hashlib.sha256(f.read()).hexdigest()
 
 
+def compile_caller(fn, **options):
+    """``fn`` compiled like the engine (numba ``njit``, cached on disk, ``options`` added) for a
+    caller in another module that calls the engine's functions: numba keys a disk cache on the
+    caller's own file, and the engine's code it compiled in would go stale unseen; the caller's
+    cache is dropped when this file's content differs from the one it was compiled with."""
+    from pathlib import Path
+
+    options = {"nogil": True, "fastmath": FASTMATH, **options}
+    dispatcher = numba.njit(cache=True, **options)(fn)
+    try:
+        cache = dispatcher._cache
+        stamp = Path(cache._cache_path) / f"{fn.__module__}.{fn.__qualname__}.engine-sha256"
+        digest = source_digest()
+        if not stamp.exists() or stamp.read_text() != digest:
+            cache.flush()
+            stamp.write_text(digest)
+    except (AttributeError, OSError):       # no disk cache there: compiled in each process
+        dispatcher = numba.njit(cache=False, **options)(fn)
+    return dispatcher
+
+
 def warm_up() -> float:
     """Compile (or load from numba's cache) every entry point now, not at the first sample;
     return the seconds it took."""

@@ -24,7 +24,6 @@ kernel's cache is dropped when the engine it calls has changed (``kernel``).
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 
@@ -180,29 +179,15 @@ def _run_cycles(f, k, budget, state, nxt, ad, bd, c_meas, meas_lo, inputs, histo
 
 
 _kernel = None
-STAMP = "simkernel-engine.sha256"
 
 
 def kernel():
     """The compiled ``run_cycles`` (numba; compiled once per process, cached on disk where the
-    package's folder is writable). Numba keys the cache on this file only, while the kernel
-    compiles the engine's cycle into itself: the cache is dropped when rt/engine.py has changed
-    since it was written."""
+    package's folder is writable, and recompiled when the engine it calls has changed:
+    ``engine.compile_caller``)."""
     global _kernel
     if _kernel is None:
-        import numba
-
-        dispatcher = numba.njit(cache=True, nogil=True, fastmath=e.FASTMATH)(_run_cycles)
-        try:
-            cache = dispatcher._cache
-            stamp = Path(cache._cache_path) / STAMP
-            digest = e.source_digest()
-            if not stamp.exists() or stamp.read_text() != digest:
-                cache.flush()
-                stamp.write_text(digest)
-        except (AttributeError, OSError):   # no disk cache here: compiled in this process
-            dispatcher = numba.njit(cache=False, nogil=True, fastmath=e.FASTMATH)(_run_cycles)
-        _kernel = dispatcher
+        _kernel = e.compile_caller(_run_cycles)
     return _kernel
 
 
