@@ -537,8 +537,8 @@ def run(args: argparse.Namespace) -> int:
         s = result["step_us"]
         c, p = s["compiled"], s["call"]
         print(f"control step ({args.steps} steps): the compiled cycle p50 {c['p50']:.2f} us, p99 "
-              f"{c['p99']:.2f} us (CPU cycle counter); called from Python as the loop does p50 {p['p50']:.2f} us, p99 "
-              f"{p['p99']:.2f} us (x{s['call_over_compiled_p50']:.2f})")
+              f"{c['p99']:.2f} us (CPU cycle counter); called from Python as the loop does p50 "
+              f"{p['p50']:.2f} us, p99 {p['p99']:.2f} us (x{s['call_over_compiled_p50']:.2f})")
         print(f"CAN latency, strain frame sent -> voltage frame sent, emulator in its own process "
               f"({lat['transport'].split(':')[0]}): p50 {lat['p50']:.1f} us, p99 {lat['p99']:.1f} us, "
               f"p99.9 {lat['p99.9']:.1f} us, max {lat['max']:.0f} us over {lat['samples']} samples "
