@@ -542,8 +542,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"CAN latency, strain frame sent -> voltage frame sent, emulator in its own process "
               f"({lat['transport'].split(':')[0]}): p50 {lat['p50']:.1f} us, p99 {lat['p99']:.1f} us, "
               f"p99.9 {lat['p99.9']:.1f} us, max {lat['max']:.0f} us over {lat['samples']} samples "
-              f"({lat['samples'] / lat['sample_rate_hz']:.0f} s); {lat['over_half_period']} later than half a "
-              f"period ({lat['half_period_us']:.0f} us), {lat['late']} later than the answer budget; "
+              f"({lat['samples'] / lat['sample_rate_hz']:.0f} s); {lat['over_half_period']} later than "
+              f"half a period ({lat['half_period_us']:.0f} us), {lat['late']} later than the answer budget; "
               f"{lat['ended']}")
         print(f"bus load at {lat['sample_rate_hz']:g} Hz: {lat['bus_load_percent']:.1f} % of {lat['bus']}; "
               f"highest rate on classic CAN 1 Mbit/s {lat['max_rate_classic_1M_Hz']:.0f} Hz "
