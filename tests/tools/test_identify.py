@@ -190,23 +190,27 @@ def test_closed_loop_identification_above_the_critical_load_gives_the_open_loop_
             assert abs(np.median(part)) < 0.01, f"({i}, {j}): {name} biased by {np.median(part):.3g}"
 
 
-def test_over_can_the_same_identification_finds_the_same_beam(tmp_path):
+def test_over_can_the_same_identification_finds_the_same_beam(tmp_path, monkeypatch):
     """Nothing but the HAL changes: the DAQ emulator (the paper's beam at 1500 N, 2500 Hz) over
-    python-can's virtual bus, its voltages quantised to the DBC's 0.6 V."""
+    python-can's virtual bus, its voltages quantised to the DBC's 0.6 V. The controller has the
+    shipped safety (the gain table's ride-through limits); the emulator runs in lockstep and the
+    CAN backend is the rig's (tests/hal/rigs.py: on a clock of the test's own, waiting for each
+    sample while the emulator runs), so this machine's scheduling changes nothing."""
     import can
 
     from beamctl.gains.defaults import paper_table_path
     from beamctl.hal.emulator import CanPlantEmulator
     from beamctl.models import eigenfrequencies
-    from tests.hal.rigs import GEOMETRY, IN_PROCESS_SAFETY, MODEL, make_plant
+    from tests.hal.rigs import GEOMETRY, MODEL, make_plant, service_backends
 
     channel = "identify-can"
     bus = can.Bus(interface="virtual", channel=channel)
-    emulator = CanPlantEmulator(bus, make_plant(), GEOMETRY, pace="lockstep").start()
+    emulator = CanPlantEmulator(bus, make_plant(), GEOMETRY, pace="lockstep")
+    service_backends(monkeypatch, emulator)
+    emulator.start()
     cfg = service_config({"gains": {"table": str(paper_table_path())},
                           "hal": {"backend": "can", "can": {"interface": "virtual", "channel": channel,
-                                                            "rate_tolerance": 0.0}},
-                          "controller": {"safety": IN_PROCESS_SAFETY}}, "can rig")
+                                                            "rate_tolerance": 0.0}}}, "can rig")
     try:
         data, report = identify(cfg, load_gain_table(cfg), IdentifySettings(
             load_n=1500.0, averages=3, resolution_hz=2.0, band_hz=(20.0, 800.0), supports="A"))

@@ -16,7 +16,7 @@ from beamctl.hal.emulator import CanPlantEmulator
 from beamctl.rt.controller import COL
 from beamctl.rt.telemetry import TelemetryError, read_telemetry
 from beamctl.tools.cli import main
-from tests.hal.rigs import GEOMETRY, IN_PROCESS_SAFETY, make_plant
+from tests.hal.rigs import GEOMETRY, make_plant, service_backends, wait_until
 from tests.tools.processes import beamctl
 
 # the paper's design (integral LQR, 2500 Hz) builds in seconds; the robust check is left out
@@ -86,20 +86,29 @@ def test_a_forced_table_is_refused(tmp_path, capsys):
     assert "forced" in capsys.readouterr().err
 
 
-def test_service_against_the_plant_emulator_over_virtual_can(tmp_path, capsys):
+def test_service_against_the_plant_emulator_over_virtual_can(tmp_path, capsys, monkeypatch):
+    """The service at the shipped safety (the gain table's ride-through limits) against the DAQ
+    emulator in lockstep: its CAN backend is the rig's (tests/hal/rigs.py: on a clock of the
+    test's own, waiting for each sample while the emulator runs), so that this machine's
+    scheduling neither starves it of samples nor makes its answers late."""
     bus = can.Bus(interface="virtual", channel="service")
-    emulator = CanPlantEmulator(bus, make_plant(), GEOMETRY, pace="lockstep").start()
+    emulator = CanPlantEmulator(bus, make_plant(), GEOMETRY, pace="lockstep")
+    service_backends(monkeypatch, emulator)
+    emulator.start()
     cfg = _config(tmp_path, hal={"backend": "can", "can": {"interface": "virtual", "channel": "service",
                                                             "rate_tolerance": 0.0}},
-                  controller={"pacing": "sample", "safety": IN_PROCESS_SAFETY},
+                  controller={"pacing": "sample"},
                   run={"telemetry": str(tmp_path / "can.btl"), "duration_s": 0.4})
     try:
         assert main(["run", "--config", cfg, "--json"]) == 0
+        # the emulator takes the status frame the service ended with
+        wait_until(lambda: emulator.last_state == 5, "the DAQ hearing STOPPED")
     finally:
         emulator.stop()
         bus.shutdown()
     summary = json.loads(capsys.readouterr().out)
-    assert summary["state"] == "STOPPED", summary["reason"]
+    assert summary["state"] == "STOPPED" and summary["stopped_by"] == "cycle limit", summary["reason"]
+    assert summary["cycles"] >= 1000 and summary["late_answers"] == 0
     assert summary["hal"]["sequence_gaps"] == 0
     assert summary["hal"]["bus_load_percent"] == pytest.approx(
         100 * bus_budget(Contract(), 2500.0, 1e6).load, rel=1e-9), "classic CAN at 1 Mbit/s, 2500 Hz"
