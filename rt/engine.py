@@ -594,9 +594,10 @@ def cycle(buf, iv, fv, mats, sample):
         silent = fv[IN_SILENT]
         if silent < 0.0:
             silent = float(iv[V_SILENT])
-        # the samples due in that time are missing: more than gap_limit of them fault
-        if running and math.floor(silent) > iv[V_GAP_LIMIT]:
-            _trip(buf, iv, fv, F_STALE_INPUT, math.floor(silent), iv[V_GAP_LIMIT], -1)
+        # the samples due in that time are missing: more than gap_limit of them fault (compared
+        # as floats: an endless or unknown silence, inf or NaN, faults too)
+        if running and not silent < iv[V_GAP_LIMIT] + 1.0:
+            _trip(buf, iv, fv, F_STALE_INPUT, silent, iv[V_GAP_LIMIT], -1)
     else:
         iv[V_SILENT] = 0
         t = fv[IN_TIME]

@@ -30,7 +30,8 @@ A new sample:
 
 No sample (``step(None, silent_periods)``): the voltages hold. ``silent_periods`` is the time
 since the last sample in periods (None: one period per call since the last sample); a RUNNING
-controller faults STALE_INPUT once floor(silent_periods) exceeds the gap limit. FAULT and
+controller faults STALE_INPUT once floor(silent_periods) exceeds the gap limit (or the silence
+is not a number). FAULT and
 STOPPING advance the ramp.
 
 Between cycles: ``answer_sent(age_s)``: an answer later than the budget is late, more than the
@@ -386,11 +387,10 @@ class ReferenceController:
             r[COL["input_period_us"]] = math.nan
             self.silent_calls += 1
             silent = self.silent_calls if silent_periods is None or silent_periods < 0 else silent_periods
-            # the samples due in that time are missing: floor(silent) of them (any silence of
-            # gap_limit + 1 periods or more, infinite too; NaN is no measure and faults nothing)
-            if running and silent >= self.gap_limit + 1:
-                self._trip(Fault.STALE_INPUT, math.floor(silent) if math.isfinite(silent) else silent,
-                           self.gap_limit)
+            # the samples due in that time are missing: floor(silent) of them; a silence of
+            # gap_limit + 1 periods or more faults, and so does an endless or unknown one (inf, NaN)
+            if running and not silent < self.gap_limit + 1:
+                self._trip(Fault.STALE_INPUT, silent, self.gap_limit)
         else:
             self.silent_calls = 0
             self.time = sample.timestamp
