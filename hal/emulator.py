@@ -47,7 +47,7 @@ class CanPlantEmulator:
                  contract: Contract | None = None, pace: str = "wallclock",
                  answer_timeout_s: float = 0.05, latency_samples: int = 0,
                  silence_timeout_s: float | None = None, fallback_ramp_s: float | None = None,
-                 on_step: Callable[[Plant, np.ndarray], None] | None = None) -> None:
+                 on_step: Callable[[Plant, np.ndarray], None] | None = None, skip_late: bool = False) -> None:
         if pace not in PACES:
             raise ValueError(f"emulator pace {pace!r}: expected one of {PACES}")
         self.bus = bus
@@ -83,6 +83,11 @@ class CanPlantEmulator:
         self.rejected = {"extended_ids": 0, "remote_frames": 0, "wrong_length": 0, "crc_errors": 0,
                          "out_of_range": 0, "repeated": 0, "behind": 0}
         self.missed_answers = 0
+        # wallclock: samples whose time passed while this process was held up are stepped and
+        # not sent (a DAQ's clock; ``beamctl plant``), instead of sent late in a burst (a thread
+        # beside the controller in one interpreter, where the lateness is the interpreter's)
+        self.skip_late = skip_late
+        self.skipped = 0                   # samples stepped but not sent
         self.status_frames = 0
         self.last_state = None
         self.fallbacks = 0                 # times the DAQ fell back to bias on its own
@@ -108,7 +113,9 @@ class CanPlantEmulator:
         v = self._strain_values
         limit = self._strain_limit          # a gauge beyond full scale is sent at full scale
         for k, i in enumerate(self._strain_order):
-            v[i] = min(max(float(strains[k]), -limit), limit)
+            e = float(strains[k])
+            # a beam gone beyond every bound (the simulated plant diverged: NaN) reads full scale
+            v[i] = min(max(e, -limit), limit) if e == e else limit
         seq = self.samples % c.strains.sequence_modulus
         v[c.strains.index("sequence")] = seq
         data = c.strains.encode(v)
@@ -215,6 +222,15 @@ class CanPlantEmulator:
                     if msg is not None:
                         self._take(msg)
             self._step_plant()
+            if self.pace == "wallclock" and self.skip_late:
+                # a DAQ's clock does not wait: samples whose time passed while this process was
+                # held up are stepped (the beam moves on, the stacks hold) and never sent, as
+                # frames lost on the bus; a burst of late frames is not what a DAQ sends
+                while (time.monotonic() - start > (self.samples + 1) * self.period_s
+                       and not self.stop_event.is_set()
+                       and (max_samples is None or self.samples < max_samples)):
+                    self._step_plant()
+                    self.skipped += 1
 
     def start(self, max_samples: int | None = None) -> CanPlantEmulator:
         self._thread = threading.Thread(target=self.run, args=(max_samples,), name="can-plant", daemon=True)

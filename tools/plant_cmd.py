@@ -63,7 +63,8 @@ def run_plant(args: argparse.Namespace) -> int:
         print(f"beamctl plant: error: cannot open {interface}:{channel}: {exc}", file=sys.stderr)
         return 2
     emulator = CanPlantEmulator(bus, plant, plant_geometry(cfg), pace=args.pace,
-                                silence_timeout_s=args.silence_timeout, fallback_ramp_s=args.fallback_ramp)
+                                silence_timeout_s=args.silence_timeout, fallback_ramp_s=args.fallback_ramp,
+                                skip_late=True)
     previous = {}
     if threading.current_thread() is threading.main_thread():   # the operator's stop
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -82,6 +83,7 @@ def run_plant(args: argparse.Namespace) -> int:
     d, angle = plant.deflection()
     print(f"stopped after {emulator.samples} samples ({plant.time:.2f} s plant time), "
           f"{emulator.voltage_frames} voltage frames, {emulator.missed_answers} missed answers, "
+          f"{emulator.skipped} not sent (this process late), "
           f"{sum(emulator.rejected.values())} rejected, {emulator.fallbacks} fallbacks to bias, "
           f"load {plant.axial_load:.0f} N, deflection {1e3 * d:.3f} mm at {angle:.0f} deg")
     return 0

@@ -14,7 +14,9 @@ from beamctl.tools.cli import main
 def test_plant_command_plays_the_daq_for_a_controller(capsys, tmp_path):
     """The first sample may take the command's start-up (imports, the model and the plant: up to
     seconds on a busy machine); from then on the samples come at the table's rate and 200 of
-    them in order, each answered, are well within the run's 1 s."""
+    them in order, each answered, are well within the run's 1 s. A DAQ's clock does not wait:
+    where the emulator's thread was held up (a busy machine) the samples it could not send on
+    time are skipped, never sent late in a burst, and the command counts them."""
     channel = "plant-cli"
     config = tmp_path / "paper.yaml"      # the paper's design: 2500 Hz
     config.write_text(f"gains: {{table: {paper_table_path()}}}\n")
@@ -34,9 +36,13 @@ def test_plant_command_plays_the_daq_for_a_controller(capsys, tmp_path):
         thread.join(timeout=10)
         backend.close()
     assert result["rc"] == 0
-    assert len(samples) == 200 and np.all(np.diff(samples) % 256 == 1)
     out = capsys.readouterr().out
     assert "stopped after 2500 samples" in out and "voltage frames" in out
+    skipped = int(re.search(r"(\d+) not sent", out).group(1))
+    steps = np.diff(samples) % 256
+    assert len(samples) == 200 and np.all(steps >= 1), f"samples out of order: {samples}"
+    assert np.sum(steps - 1) <= skipped, (
+        f"{np.sum(steps - 1)} samples missing between those read, the emulator skipped {skipped}")
 
 
 @pytest.mark.parametrize("spec", ["vcan0", "socketcan:", ":vcan0"])
