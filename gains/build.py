@@ -1,7 +1,7 @@
 """Build a gain table: the integral LQR at every grid load as the compensator the step runs,
 the discrete closed-loop check of exactly those matrices at every grid point and every
 midpoint between neighbours, and, for a table stable at every check point, the ride-through
-limits of that loop at the same loads (gains/ridethrough.py)."""
+limits of that loop per grid load, covering the same loads (gains/ridethrough.py)."""
 
 from __future__ import annotations
 
@@ -116,8 +116,8 @@ def closed_loop_checks(model: FEModel, table: GainTable, progress: Progress | No
 
 def ride_through(model: FEModel, table: GainTable, progress: Progress | None = None, done: int = 0,
                  total: int | None = None) -> ridethrough.RideThrough:
-    """The ride-through limits of ``table``'s loop on the nominal rig at every load of its
-    closed-loop check (gains/ridethrough.py)."""
+    """The ride-through limits of ``table``'s loop on the nominal rig per grid load, covering
+    every load of its closed-loop check (gains/ridethrough.py)."""
     plan = check_plan(table)
     return ridethrough.analyse(model, nominal_rig(model, table), table, plan, progress, done, total)
 

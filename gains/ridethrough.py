@@ -37,31 +37,60 @@ deflection and which the loop barely changes, so their share would hide mode 1's
 
 How: the stationary covariance by a Lyapunov solve (states scaled by their stationary RMS); the
 gap's trajectory, the same for every N, by rows out G^j; the covariance after N missing samples
-by binary powers of G (and their noise sums); the recovery sample by sample while a bound says
-whether a later sample can still pass the limit: with Delta_m the covariance's excess over the
+by binary powers of G (and their noise sums), from the longest gap's computed so far; the
+recovery sample by sample while a bound says whether a later sample can still pass the limit:
+with Delta_m the covariance's excess over the
 stationary Sigma after m normal samples (Delta_m+1 = M Delta_m M^T), once Delta_m <= alpha Pi
 (Pi = Sigma + 1e-6 Y, Y = M Y M^T + I, so that Pi >= M Pi M^T) no later sample's variance
 exceeds the stationary one plus alpha times out Pi out^T. A recovery not bounded within the
 limit after RECOVERY_CAP_SAMPLES counts as lost. Settling is thus exact, not a guess at a time
 constant (the integral's poles take 10^4 to 10^5 samples; what they carry is small).
 
-``max_gap_samples``: the longest gap survived at the worst load (the least over the check
-loads, highest load first, each tested at the least found so far); at the first load by
-doubling and bisection over N, taking survival to fall with the gap's length (the tests walk
-every N at the worst load). The search stops at ``GAP_CAP_SAMPLES``: a table that rides through
-that long reports the cap (``RideThrough.gap_capped``). ``gap_limit_samples`` =
-floor(max_gap_samples / margin), margin 2: the run of missing samples (or late answers) the
-engine bridges before it faults.
+Per load. The limits are found for every load of the table's grid (``table.loads_n``) and
+stored one value per grid load (``max_gap_samples_per_load``, ``gap_limits_samples``,
+``max_extra_delay_samples_per_load``, ``answer_budgets_periods``): the engine applies per grid
+interval the lesser of its two ends. The loop between grid points (the check plan's midpoints,
+and in paper mode the band ends where a grid point's matrices act away from it) is covered by
+testing each such check load at its interval's limits: where it fails them, its own limit
+(found below them) replaces the lesser end's, so that the lesser end of every interval is at
+most the limit of every check load in it. The scalars (``max_gap_samples``, ``gap_load_N``,
+``max_extra_delay_samples``, ``delay_load_N`` and the limits from them) are the worst over all
+of these: the least value and the check load it was found at.
 
-Delay. ``max_extra_delay_samples``: the largest extra output delay, on a grid of
-``DELAY_STEP_SAMPLES`` up to ``DELAY_CAP_SAMPLES``, on top of the design's own
-(``design.io.delay_samples``), with which the loop is stable (spectral radius < 1) at every
-check load and at every delay of the grid below it. Stability need not fall with the delay (a
-pole can be unstable in a window of delays only), so every load walks the grid up from the
-nominal to the least found so far, highest load first: a table that holds the cap everywhere
-costs a loop's poles per load and grid delay (about 5 ms each). ``answer_budget_periods`` =
-max_extra_delay_samples / margin: an answer sent later than that after its sample arrived counts
-as late, and a run of more than gap_limit_samples late answers faults.
+Gap search. Capped at a practical horizon, ``GAP_HORIZON_S`` (0.1 s: 600 samples at 6000 Hz,
+250 at 2500 Hz; a DAQ silent that long has stopped, it is not a gap to ride through): a load
+that rides through that long reports the cap (``RideThrough.gap_capped``, ``gap_cap_samples``).
+The grid loads are walked from the top down, each search started from the answer of the load
+above (the gap grows as the load falls): the gap of that length is tested at this load and the
+search gallops up (or down, where it is lost here: the gap need not grow at every step, e.g.
+12 samples at 3400 N and 13 at 3500 N in the shipped LQG) and bisects, testing about 2 log2 of
+the distance; the answer is always a gap tested and survived at that load. Survival need not fall
+with the gap's length near the limit either (the recovery's peak follows the phase of the
+loop's oscillation at the gap's end: at 0 N in the shipped LQG every other gap from 522 to 530
+samples is lost, 531 to 546 survived, then 548 and 553 among lost ones), so the answer is an
+edge of that band (survived, the next gap lost), and gaps somewhat shorter may be lost: in the
+shipped tables the first gap lost is at least 92 % of the answer at every check load (walked
+gap by gap), so the engine's limit, half the answer, is far below it. ``gap_limits_samples`` =
+floor(max_gap_samples_per_load / margin), margin 2: the run of missing samples (or late
+answers) the engine bridges before it faults.
+
+Delay. The largest extra output delay, on a grid of ``DELAY_STEP_SAMPLES`` up to
+``DELAY_CAP_SAMPLES``, on top of the design's own (``design.io.delay_samples``), with which the
+loop is stable (spectral radius < 1) at that load and at every delay of the grid below it.
+Stability need not fall with the delay (a pole can be unstable in a window of delays only), so
+every grid load walks the grid up from the nominal, a loop's poles per grid delay (about 3 to 5
+ms); the other check loads are tested at their interval's limit (and walked below it only where
+unstable there). The engine's answer budget counts from the sample's arrival and the design
+already assumes its own delay, an answer within it being on time: ``answer_budgets_periods`` =
+design delay + max_extra_delay_samples_per_load / margin (``answer_budget_periods`` likewise at
+the worst load). An answer sent later than that counts as late, and a run of more than the gap
+limit of late answers faults.
+
+Cost (``RideThrough.elapsed_s``): about 8 s for either shipped table on a shared 2-core machine
+(the search to 2000 samples at every grid load took 70 to 80 s): the gap about 40 ms a check
+load (the Lyapunov solves of its loop, a neighbouring load's stationary RMS as its scale, and
+about 5 survival tests a grid load), the delay half of it, a loop's poles (3 to 5 ms) per grid
+delay walked, 20 at every grid load that holds the cap.
 """
 
 from __future__ import annotations
@@ -83,7 +112,7 @@ from beamctl.models.iochain import DelayedZOH
 
 GROWTH_LIMIT = 2.0          # the deflection's RMS may at most double during a gap and its recovery
 MARGIN = 2.0                # the engine's limits are the analysis' divided by this
-GAP_CAP_SAMPLES = 10000     # the gap search stops here
+GAP_HORIZON_S = 0.1         # the gap search stops at this long a gap: the DAQ has stopped, not paused
 DELAY_STEP_SAMPLES = 0.05   # grid of the extra output delay
 DELAY_CAP_SAMPLES = 1.0     # the delay search stops here: a whole sample late, the next one is due
 SETTLED = 0.01              # the recovery has settled when its excess is within 1 % of stationary
@@ -95,7 +124,11 @@ RECOVERY_CAP_SAMPLES = 1 << 20   # a recovery not bounded within the limit by th
 @dataclass(frozen=True)
 class RideThrough:
     """The ride-through limits of a table's loop (see the module docstring); stored in the
-    table file under ``ride_through``."""
+    table file under ``ride_through``. The scalars are the worst over the table's loads; the
+    ``*_per_load`` and plural fields hold one value per grid load (``table.loads_n``), the
+    engine's limits per grid interval being the lesser of its two ends (None: a table written
+    before them, whose scalars are all it has; its answer budget did not count the design's
+    own delay)."""
 
     growth_limit: float
     margin: float
@@ -109,10 +142,28 @@ class RideThrough:
     delay_step_samples: float
     delay_cap_samples: float
     elapsed_s: float
+    max_gap_samples_per_load: tuple[int, ...] | None = None
+    gap_limits_samples: tuple[int, ...] | None = None
+    max_extra_delay_samples_per_load: tuple[float, ...] | None = None
+    answer_budgets_periods: tuple[float, ...] | None = None
 
     FIELDS = ("growth_limit", "margin", "max_gap_samples", "gap_limit_samples", "gap_load_N",
               "gap_cap_samples", "max_extra_delay_samples", "answer_budget_periods", "delay_load_N",
-              "delay_step_samples", "delay_cap_samples", "elapsed_s")
+              "delay_step_samples", "delay_cap_samples", "max_gap_samples_per_load", "gap_limits_samples",
+              "max_extra_delay_samples_per_load", "answer_budgets_periods", "elapsed_s")
+    PER_LOAD = ("max_gap_samples_per_load", "gap_limits_samples", "max_extra_delay_samples_per_load",
+                "answer_budgets_periods")
+
+    def __post_init__(self) -> None:
+        for name, kind in zip(self.PER_LOAD, (int, int, float, float), strict=True):
+            values = getattr(self, name)
+            if values is not None:
+                object.__setattr__(self, name, tuple(kind(v) for v in values))
+
+    @property
+    def per_load(self) -> bool:
+        """The limits are given per grid load (a table analysed since they are)."""
+        return self.max_gap_samples_per_load is not None
 
     @property
     def gap_capped(self) -> bool:
@@ -125,30 +176,44 @@ class RideThrough:
         return self.delay_load_n is None
 
     def to_dict(self) -> dict[str, Any]:
-        return {"growth_limit": float(self.growth_limit), "margin": float(self.margin),
-                "max_gap_samples": int(self.max_gap_samples),
-                "gap_limit_samples": int(self.gap_limit_samples),
-                "gap_load_N": float(self.gap_load_n), "gap_cap_samples": int(self.gap_cap_samples),
-                "max_extra_delay_samples": float(self.max_extra_delay_samples),
-                "answer_budget_periods": float(self.answer_budget_periods),
-                "delay_load_N": None if self.delay_load_n is None else float(self.delay_load_n),
-                "delay_step_samples": float(self.delay_step_samples),
-                "delay_cap_samples": float(self.delay_cap_samples),
-                "elapsed_s": float(self.elapsed_s)}
+        d: dict[str, Any] = {
+            "growth_limit": float(self.growth_limit), "margin": float(self.margin),
+            "max_gap_samples": int(self.max_gap_samples), "gap_limit_samples": int(self.gap_limit_samples),
+            "gap_load_N": float(self.gap_load_n), "gap_cap_samples": int(self.gap_cap_samples),
+            "max_extra_delay_samples": float(self.max_extra_delay_samples),
+            "answer_budget_periods": float(self.answer_budget_periods),
+            "delay_load_N": None if self.delay_load_n is None else float(self.delay_load_n),
+            "delay_step_samples": float(self.delay_step_samples),
+            "delay_cap_samples": float(self.delay_cap_samples)}
+        for name in self.PER_LOAD:
+            values = getattr(self, name)
+            if values is not None:
+                d[name] = list(values)
+        d["elapsed_s"] = float(self.elapsed_s)
+        return d
 
     def describe(self) -> str:
         gap = (f"{self.max_gap_samples} samples or more (the search's cap)" if self.gap_capped
                else f"{self.max_gap_samples} samples at {self.gap_load_n:g} N")
         delay = (f"{self.max_extra_delay_samples:g} samples or more (the search's cap)" if self.delay_capped
                  else f"{self.max_extra_delay_samples:g} samples at {self.delay_load_n:g} N")
-        return (f"ride-through: longest gap survived {gap} (deflection RMS at most x{self.growth_limit:g}), "
+        text = (f"ride-through: longest gap survived {gap} (deflection RMS at most x{self.growth_limit:g}), "
                 f"limit {self.gap_limit_samples}; extra output delay tolerated {delay}, answer budget "
-                f"{self.answer_budget_periods:g} periods (margin {self.margin:g}); {self.elapsed_s:.1f} s")
+                f"{self.answer_budget_periods:g} periods (margin {self.margin:g})")
+        if self.per_load:
+            text += (f"; per grid load gap limits {min(self.gap_limits_samples)} to "
+                     f"{max(self.gap_limits_samples)} samples, answer budgets "
+                     f"{min(self.answer_budgets_periods):g} to {max(self.answer_budgets_periods):g} periods")
+        return text + f"; {self.elapsed_s:.1f} s"
 
 
-def limits(max_gap_samples: int, max_extra_delay_samples: float, margin: float = MARGIN) -> tuple[int, float]:
-    """(gap_limit_samples, answer_budget_periods): the analysis' limits divided by ``margin``."""
-    return int(math.floor(max_gap_samples / margin)), max_extra_delay_samples / margin
+def limits(max_gap_samples: int, max_extra_delay_samples: float, margin: float = MARGIN,
+           design_delay_samples: float = 0.0) -> tuple[int, float]:
+    """(gap_limit_samples, answer_budget_periods), the engine's limits: floor(max_gap_samples /
+    margin), and the design's own output delay (an answer within it is what the design assumes)
+    plus max_extra_delay_samples / margin."""
+    return (int(math.floor(max_gap_samples / margin)),
+            float(design_delay_samples) + max_extra_delay_samples / margin)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -256,13 +321,16 @@ def gap_loop(model: FEModel, rig: RigPlane, load_n: float, point: CompensatorPoi
 class GapAnalysis:
     """The deflection's variance through a gap of N samples and the recovery after it, at one
     load (see the module docstring). States are scaled by their stationary RMS: in SI they span
-    ten decades, where the Lyapunov solve keeps three digits."""
+    ten decades, where the Lyapunov solve keeps three digits (``scale``: a neighbouring load's
+    ``rms``, near enough, instead of a Lyapunov solve for it)."""
 
-    def __init__(self, loop: GapLoop, growth_limit: float = GROWTH_LIMIT) -> None:
+    def __init__(self, loop: GapLoop, growth_limit: float = GROWTH_LIMIT,
+                 scale: np.ndarray | None = None) -> None:
         self.growth_limit = growth_limit
         n = loop.n
-        scale = np.sqrt(np.abs(np.diag(_Stein(loop.m).solve(loop.w @ loop.w.T))))
-        scale[scale <= 1e-300] = 1.0
+        if scale is None or scale.shape != (n,):
+            scale = np.sqrt(np.abs(np.diag(_Stein(loop.m).solve(loop.w @ loop.w.T))))
+        scale = np.where((scale > 1e-300) & np.isfinite(scale), scale, 1.0)
         self.m = loop.m / scale[:, None] * scale[None, :]
         self.w = loop.w / scale[:, None]
         ww = self.w @ self.w.T
@@ -273,6 +341,9 @@ class GapAnalysis:
         # Pi - M Pi M^T = W W^T + eps I >= 0 too; eps 1e-6 of the states' stationary variance
         pi = stein.solve(ww + BOUND_EPS * np.eye(n))
         self._bound_factor = sla.cholesky(pi, lower=True)
+        # the states' stationary RMS: a neighbouring load's analysis may take it as its scale
+        # (``scale``), which saves a Lyapunov solve and serves as well
+        self.rms = scale * np.sqrt(np.abs(np.diag(self.sigma)))
         self.out = loop.deflection * scale
         self.variance = float(self.out @ self.sigma @ self.out)
         self.bound_variance = float(self.out @ pi @ self.out)
@@ -295,6 +366,8 @@ class GapAnalysis:
         self._block: np.ndarray | None = None         # out M^m, m < GAP_BLOCK
         self._block_step: np.ndarray | None = None    # M^GAP_BLOCK
         self._powers: list[tuple[np.ndarray, np.ndarray]] = []   # (G^2^b, sum_{i<2^b} G^i W G^iT)
+        self._tested: dict[int, bool] = {}     # survives(N) of the gaps tested
+        self._after: dict[int, np.ndarray] = {}   # covariance of [z; y_held] after N missing samples
 
     # -- the gap: one trajectory for every N -------------------------------------------------
     def _extend_gap(self, j: int) -> None:
@@ -343,24 +416,26 @@ class GapAnalysis:
             j *= 2
 
     def after_gap(self, n_gap: int) -> np.ndarray:
-        """Covariance of z after ``n_gap`` missing samples (by binary powers of G)."""
-        acc_p = np.eye(self.g.shape[0])
-        acc_s = np.zeros_like(self.g)
-        b = 0
-        while (1 << b) <= n_gap:
+        """Covariance of z after ``n_gap`` missing samples: from the longest gap's covariance
+        computed so far that is not longer (or the gap's start), by binary powers of G."""
+        base = max((n for n in self._after if n <= n_gap), default=0)
+        cov = self._after[base] if base else self.start
+        k, b = n_gap - base, 0
+        while (1 << b) <= k:
             if len(self._powers) <= b:
                 if b == 0:
                     self._powers.append((self.g, self.wa @ self.wa.T))
                 else:
                     p, s = self._powers[b - 1]
                     self._powers.append((p @ p, s + p @ s @ p.T))
-            if n_gap >> b & 1:
+            if k >> b & 1:
                 p, s = self._powers[b]
-                acc_s = s + p @ acc_s @ p.T
-                acc_p = p @ acc_p
+                cov = p @ cov @ p.T + s
             b += 1
-        cov = acc_p @ self.start @ acc_p.T + acc_s
-        return _sym(cov)[:-2, :-2]
+        cov = _sym(cov)
+        if n_gap:
+            self._after[n_gap] = cov
+        return cov[:-2, :-2]
 
     # -- the recovery ------------------------------------------------------------------------
     def _excess_bound(self, delta: np.ndarray) -> float:
@@ -406,6 +481,11 @@ class GapAnalysis:
         of ``n_gap`` samples and of the whole recovery after it."""
         if n_gap <= 0:
             return True
+        if n_gap not in self._tested:
+            self._tested[n_gap] = self._survives(n_gap)
+        return self._tested[n_gap]
+
+    def _survives(self, n_gap: int) -> bool:
         if self.gap_peak(n_gap) > self.limit:
             return False
         delta = self.after_gap(n_gap) - self.sigma
@@ -426,10 +506,20 @@ class GapAnalysis:
         ratio = np.sqrt(np.concatenate([gap, values[1:]]) / self.variance)
         return ratio, math.sqrt(bound / self.variance)
 
-    def max_gap(self, cap: int, below: int | None = None) -> int:
-        """The longest gap survived, by doubling and bisection (survival taken to fall with the
-        gap's length), at most ``cap``. With ``below``: only whether it is less than that
-        matters; if the gap of ``below`` samples is survived, ``below`` is returned."""
+    def max_gap(self, cap: int, below: int | None = None, start: int | None = None) -> int:
+        """The longest gap survived, at most ``cap``: a gap N survived with N + 1 lost (or the
+        cap), by doubling and bisection, or with ``start`` (a guess, e.g. a neighbouring load's
+        answer) by galloping from it (up while survived: start + 1, + 2, + 4, ...; down while
+        lost) and bisection, which costs about 2 log2 of the distance from the guess.
+
+        Survival need not fall with the gap's length near the limit (the recovery's peak
+        follows the phase of the loop's oscillation at the gap's end; at 0 N in the shipped LQG
+        gaps of 522 to 530 samples are lost every other one, 531 to 546 survived, 548 and 553
+        survived among lost ones): the answer is then one edge of that band, a gap tested and
+        survived with the next one lost, as is every gap tested below it.
+
+        With ``below``: only whether it is less than that matters; if the gap of ``below``
+        samples is survived, ``below`` is returned."""
         lost = self.first_lost_in_gap(cap if below is None else below)
         hi = cap + 1 if lost is None else lost          # lost (or beyond the cap)
         if below is not None:
@@ -437,13 +527,13 @@ class GapAnalysis:
                 return below
             hi = min(hi, below)
             lo = 0
+        elif start is not None:
+            lo, hi = self._gallop(min(max(int(start), 0), hi - 1), hi)
         else:
             lo, n = 0, 1
             while n < hi and self.survives(n):
                 lo, n = n, 2 * n
             hi = min(hi, n)
-            if lo == hi - 1 or lo >= cap:
-                return min(lo, cap)
         while hi - lo > 1:
             mid = (lo + hi) // 2
             if self.survives(mid):
@@ -451,6 +541,25 @@ class GapAnalysis:
             else:
                 hi = mid
         return min(lo, cap)
+
+    def _gallop(self, start: int, hi: int) -> tuple[int, int]:
+        """(lo, hi): survived (or 0) and lost (or beyond the cap), found from ``start`` < hi by
+        growing steps, for the bisection between them."""
+        if self.survives(start):
+            lo, step = start, 1
+            while lo + 1 < hi:
+                n = min(lo + step, hi - 1)
+                if not self.survives(n):
+                    return lo, n
+                lo, step = n, 2 * step
+            return lo, hi
+        hi, step = start, 1
+        while hi > 1:
+            n = max(hi - step, 0)
+            if n == 0 or self.survives(n):
+                return n, hi
+            hi, step = n, 2 * step
+        return 0, hi
 
 
 class _DelayedPlant:
@@ -546,18 +655,65 @@ def steps(plan: Plan) -> int:
     return 2 * len(plan)
 
 
+def gap_horizon_samples(sample_rate_hz: float) -> int:
+    """The gap search's cap: GAP_HORIZON_S of samples (600 at 6000 Hz, 250 at 2500 Hz)."""
+    return max(int(round(GAP_HORIZON_S * sample_rate_hz)), 1)
+
+
+def _places(plan: Plan, loads: np.ndarray) -> tuple[list[int], list[tuple[int, int, int]]]:
+    """Where the check loads of ``plan`` sit on the grid ``loads``: the plan entry of each grid
+    load (its own matrices, as the settled schedule has them there), and every other entry as
+    (entry, j, k): between grid loads j and k = j + 1, or at grid load j = k (paper mode's
+    matrices of a neighbouring grid point there)."""
+    own: list[int | None] = [None] * len(loads)
+    others: list[tuple[int, int, int]] = []
+    for e, (load, gain_load, _) in enumerate(plan):
+        i = int(np.searchsorted(loads, load))
+        at = i < len(loads) and math.isclose(load, loads[i], rel_tol=0.0, abs_tol=1e-9)
+        if at and gain_load is None and own[i] is None:
+            own[i] = e
+        elif at:
+            others.append((e, i, i))
+        else:
+            j = min(max(i - 1, 0), len(loads) - 1)
+            others.append((e, j, min(i, len(loads) - 1)))
+    missing = [float(loads[i]) for i, e in enumerate(own) if e is None]
+    if missing:
+        raise ValueError(f"the check plan has no entry for the grid loads {missing} N")
+    others.sort(key=lambda x: -plan[x[0]][0])
+    return [int(e) for e in own], others
+
+
+def _fold(values: list, sources: list[float], j: int, k: int, value, load: float) -> None:
+    """A check load between grid loads j and k (or at j = k) whose limit ``value`` is less than
+    the engine's there, the lesser of the two ends: that end (the upper on a tie) takes it, so
+    that the lesser end of every grid interval is at most the limit of every check load in it."""
+    end = k if values[k] <= values[j] else j
+    values[end], sources[end] = value, load
+
+
+def _worst(values: list, sources: list[float]) -> tuple[Any, float]:
+    """The least of ``values`` and the load it was found at (the highest of equal ones)."""
+    least = min(values)
+    return least, max(src for v, src in zip(values, sources, strict=True) if v == least)
+
+
 def analyse(model: FEModel, rig: RigPlane, table, plan: Plan, progress: BuildProgress | None = None,
             done: int = 0, total: int | None = None, *, growth_limit: float = GROWTH_LIMIT,
-            margin: float = MARGIN, gap_cap: int = GAP_CAP_SAMPLES,
+            margin: float = MARGIN, gap_cap: int | None = None,
             delay_step: float = DELAY_STEP_SAMPLES, delay_cap: float = DELAY_CAP_SAMPLES) -> RideThrough:
-    """The ride-through limits of ``table``'s loop on ``rig`` (the nominal rig) at the loads of
-    its closed-loop check ``plan`` ((load, gain load, matrices), as ``gains.build.check_plan``
-    gives). Each load is tested at the least limit found so far, highest load first."""
+    """The ride-through limits of ``table``'s loop on ``rig`` (the nominal rig) per load of its
+    grid, covering every load of its closed-loop check ``plan`` ((load, gain load, matrices), as
+    ``gains.build.check_plan`` gives); see the module docstring. ``gap_cap``: the gap search's
+    cap (default ``gap_horizon_samples`` of the rig's rate)."""
     started = time.perf_counter()
     total = total if total is not None else done + steps(plan)
     comp = table.compensator
     states = comp.plane_states[rig.plane]
-    order = sorted(range(len(plan)), key=lambda i: -plan[i][0])
+    loads = np.asarray(table.loads_n, dtype=float)
+    own, others = _places(plan, loads)
+    top_down = sorted(range(len(loads)), key=lambda i: -loads[i])
+    cap = gap_horizon_samples(rig.sample_rate_hz) if gap_cap is None else int(gap_cap)
     step = done
 
     def tick(label: str) -> None:
@@ -566,46 +722,81 @@ def analyse(model: FEModel, rig: RigPlane, table, plan: Plan, progress: BuildPro
         if progress:
             progress(step, total, label)
 
-    best_gap, gap_load = None, None
-    for i in order:
-        load, _, point = plan[i]
-        if best_gap != 0:       # nothing is less than no gap
-            analysis = GapAnalysis(gap_loop(model, rig, load, point, comp.h, states, comp.period_s),
-                                   growth_limit)
-            found = analysis.max_gap(gap_cap, below=best_gap)
-            if best_gap is None or found < best_gap:
-                best_gap, gap_load = found, load
-        tick(f"ride-through gap {load:7.1f} N")
+    scales: dict[int, np.ndarray] = {}      # the states' stationary RMS at the grid loads
+
+    def gap_analysis(e: int, scale: np.ndarray | None) -> GapAnalysis:
+        load, _, point = plan[e]
+        return GapAnalysis(gap_loop(model, rig, load, point, comp.h, states, comp.period_s), growth_limit,
+                           scale)
+
+    # the gap at every grid load, from the top down, each search started from the answer above
+    gaps = [0] * len(loads)
+    gap_sources = [float(x) for x in loads]
+    above, scale = None, None
+    for i in top_down:
+        analysis = gap_analysis(own[i], scale)
+        gaps[i] = above = analysis.max_gap(cap, start=above)
+        scales[i] = scale = analysis.rms
+        tick(f"ride-through gap {loads[i]:7.1f} N")
+    # the other check loads, each tested at its interval's limit (the lesser end)
+    for e, j, k in others:
+        bound = min(gaps[j], gaps[k])
+        if bound > 0:
+            found = gap_analysis(e, scales[j]).max_gap(cap, below=bound)
+            if found < bound:
+                _fold(gaps, gap_sources, j, k, found, plan[e][0])
+        tick(f"ride-through gap {plan[e][0]:7.1f} N")
 
     count = int(round(delay_cap / delay_step))
     grid = [round(k * delay_step, 10) for k in range(count + 1)]
     plants: dict[int, _DelayedPlant] = {}
 
-    def stable(i: int, k: int) -> bool:
-        load, _, point = plan[i]
-        if i not in plants:
-            plants[i] = _DelayedPlant(rig, load, delay_step)
-        plant, c = plants[i].sampled(round(rig.chain.delay_samples + grid[k], 10))
+    def stable(e: int, k: int) -> bool:
+        load, _, point = plan[e]
+        if e not in plants:
+            plants[e] = _DelayedPlant(rig, load, delay_step)
+        plant, c = plants[e].sampled(round(rig.chain.delay_samples + grid[k], 10))
         io = list(PLANE_CHANNELS[rig.plane])
         matrix = closed_loop_matrix(plant, c, point.plane(list(states), rig.plane), comp.h[np.ix_(io, io)],
                                     comp.period_s, rig.force_gain)
         return float(np.max(np.abs(np.linalg.eigvals(matrix)))) < 1.0
 
-    # the delays of the grid up to the least found so far, walked up from the nominal (stable by
-    # the check) at every load: stability need not fall with the delay (a pole can be unstable in
-    # a window of delays only), so a bisection could step over an unstable window
-    best_k, delay_load = count, None
-    for i in order:
-        load = plan[i][0]
-        for k in range(1, best_k + 1):
-            if not stable(i, k):
-                best_k, delay_load = k - 1, load
-                break
-        tick(f"ride-through delay {load:7.1f} N")
+    def walk(e: int, top: int) -> int:
+        """The grid delays up to ``top`` walked up from the nominal (stable by the check): the
+        last before the first unstable one. Stability need not fall with the delay (a pole can
+        be unstable in a window of delays only), so a bisection could step over a window."""
+        for k in range(1, top + 1):
+            if not stable(e, k):
+                plants.pop(e, None)
+                return k - 1
+        plants.pop(e, None)
+        return top
 
-    gap_limit, budget = limits(best_gap, grid[best_k], margin)
+    delays = [0] * len(loads)          # grid steps
+    delay_sources = [float(x) for x in loads]
+    for i in top_down:
+        delays[i] = walk(own[i], count)
+        tick(f"ride-through delay {loads[i]:7.1f} N")
+    # the other check loads at their interval's limit; below it only if unstable there
+    for e, j, k in others:
+        bound = min(delays[j], delays[k])
+        if bound > 0 and not stable(e, bound):
+            _fold(delays, delay_sources, j, k, walk(e, bound - 1), plan[e][0])
+        plants.pop(e, None)
+        tick(f"ride-through delay {plan[e][0]:7.1f} N")
+
+    design_delay = float(table.design.io.delay_samples)
+    per_load = [limits(g, grid[k], margin, design_delay) for g, k in zip(gaps, delays, strict=True)]
+    best_gap, gap_load = _worst(gaps, gap_sources)
+    best_k, delay_load = _worst(delays, delay_sources)
+    gap_limit, budget = limits(best_gap, grid[best_k], margin, design_delay)
     return RideThrough(growth_limit=growth_limit, margin=margin, max_gap_samples=int(best_gap),
-                       gap_limit_samples=gap_limit, gap_load_n=float(gap_load), gap_cap_samples=int(gap_cap),
+                       gap_limit_samples=gap_limit, gap_load_n=float(gap_load), gap_cap_samples=cap,
                        max_extra_delay_samples=grid[best_k], answer_budget_periods=budget,
-                       delay_load_n=delay_load, delay_step_samples=delay_step, delay_cap_samples=delay_cap,
-                       elapsed_s=round(time.perf_counter() - started, 2))
+                       delay_load_n=None if best_k == count else float(delay_load),
+                       delay_step_samples=delay_step, delay_cap_samples=delay_cap,
+                       elapsed_s=round(time.perf_counter() - started, 2),
+                       max_gap_samples_per_load=tuple(int(g) for g in gaps),
+                       gap_limits_samples=tuple(lim for lim, _ in per_load),
+                       max_extra_delay_samples_per_load=tuple(grid[k] for k in delays),
+                       answer_budgets_periods=tuple(b for _, b in per_load))

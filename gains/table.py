@@ -23,7 +23,11 @@ Optional, and absent from tables written before them: the compensator's strain p
 ``compensator.predict`` (P [G x 4 x n], y_hat = P x_c, with which the engine bridges a missing
 sample; absent: hold the last measured strains) and the loop's ride-through limits
 ``ride_through`` (gains/ridethrough.py: the longest gap of missing samples and the largest extra
-output delay the loop survives at its worst check load, and the limits the engine uses).
+output delay the loop survives, and the limits the engine uses, at its worst check load and, in
+tables written since, per grid load: ``max_gap_samples_per_load``, ``gap_limits_samples``,
+``max_extra_delay_samples_per_load``, ``answer_budgets_periods``, one value per entry of
+``loads_N``; a table with the scalars only has an answer budget that does not count the
+design's own delay).
 """
 
 from __future__ import annotations
@@ -424,10 +428,21 @@ def load_table(path: str | Path, model: ModelParameters | None = None, *,
     if not isinstance(forced, bool):
         raise GainTableError("check.forced", forced, "true or false", source)
 
-    ride_through = _ride_through(data, source) if "ride_through" in data else None
-
     stored = data.get(CONTENT_HASH)
     content = content_sha256(data)
+    if verify and stored != content:
+        # before the ride-through limits, which are checked against the design's delay: a file
+        # changed after it was built is refused as that, whichever field was changed
+        found = f"{stored[:16]}..." if isinstance(stored, str) else stored
+        raise GainTableError(CONTENT_HASH, found,
+                             f"the SHA-256 of the file's content ({content[:16]}...): "
+                             f"{changed_file_message(path)}", source)
+    # a changed file read for inspection: its limits are read as they are (a changed design delay
+    # would make the answer budget inconsistent, which the hash has already said)
+    ride_through = (_ride_through(data, source, len(loads), design.io.delay_samples,
+                                  consistent=stored == content)
+                    if "ride_through" in data else None)
+
     table = GainTable(
         loads_n=loads, compensator=compensator, c0_phi_inv=c0_phi_inv, design=design, gains=gains,
         schedule=ScheduleSettings(mode=mode, load_filter_hz=load_filter, hysteresis_n=hysteresis),
@@ -435,11 +450,6 @@ def load_table(path: str | Path, model: ModelParameters | None = None, *,
         tool_version=str(data.get("tool_version", "")), created=str(data.get("created", "")),
         intact=stored == content, ride_through=ride_through)
     if verify:
-        if not table.intact:
-            found = f"{stored[:16]}..." if isinstance(stored, str) else stored
-            raise GainTableError(CONTENT_HASH, found,
-                                 f"the SHA-256 of the file's content ({content[:16]}...): "
-                                 f"{changed_file_message(path)}", source)
         require_checked(table, source, rebuild_advice(path))
     return table
 
@@ -509,9 +519,13 @@ def _compensator(data: dict, n_points: int, period_s: float, source: str) -> Com
                        plane_states={"y": list(raw["y"]), "z": list(raw["z"])}, predict=predict)
 
 
-def _ride_through(data: dict, source: str) -> RideThrough:
-    """The ``ride_through`` section: every field present and of its kind, the engine's limits
-    the analysis' divided by the margin."""
+def _ride_through(data: dict, source: str, n_loads: int, design_delay: float,
+                  consistent: bool = True) -> RideThrough:
+    """The ``ride_through`` section: every field present and of its kind, and (``consistent``)
+    the engine's limits the analysis' divided by the margin (the answer budget on top of the
+    design's own delay ``design_delay``) and the scalars the worst load's. The per-load lists
+    (one value per grid load, ``n_loads``) come all four or none: a table written before them
+    has the scalars only, its answer budget without the design's delay."""
     section = data["ride_through"]
     if not isinstance(section, dict):
         raise GainTableError("ride_through", _short(section), "a mapping of the ride-through limits",
@@ -535,9 +549,30 @@ def _ride_through(data: dict, source: str) -> RideThrough:
                                  f"a number {'>' if open_low else '>='} {low:g}", source)
         return value
 
+    def per_load(name: str, whole: bool) -> list:
+        raw = section[name]
+        kind = "whole numbers" if whole else "finite numbers"
+        expected = f"a list of {n_loads} {kind} >= 0, one per grid load (loads_N)"
+        if not isinstance(raw, list) or len(raw) != n_loads:
+            found = f"a list of {len(raw)} values" if isinstance(raw, list) else _short(raw)
+            raise GainTableError(f"ride_through.{name}", found, expected, source)
+        for i, v in enumerate(raw):
+            if (isinstance(v, bool) or not isinstance(v, int if whole else (int, float))
+                    or not math.isfinite(v) or v < 0):
+                raise GainTableError(f"ride_through.{name}", f"{v!r} at index {i}", expected, source)
+        return raw
+
+    lists = [name for name in RideThrough.PER_LOAD if name in section]
+    if lists and len(lists) < len(RideThrough.PER_LOAD):
+        missing = next(name for name in RideThrough.PER_LOAD if name not in section)
+        raise GainTableError(f"ride_through.{missing}", None,
+                             f"this field with {', '.join(lists)} (the per-load limits come together)",
+                             source)
     delay_load = _field(data, "ride_through.delay_load_N", source)
     if delay_load is not None:
         delay_load = _number(data, "ride_through.delay_load_N", source, positive=False)
+    values = {name: per_load(name, whole=name in ("max_gap_samples_per_load", "gap_limits_samples"))
+              for name in lists}
     rt = RideThrough(growth_limit=number("growth_limit", 1.0, open_low=True),
                      margin=number("margin", 1.0), max_gap_samples=count("max_gap_samples"),
                      gap_limit_samples=count("gap_limit_samples"),
@@ -547,12 +582,42 @@ def _ride_through(data: dict, source: str) -> RideThrough:
                      answer_budget_periods=number("answer_budget_periods", 0.0),
                      delay_load_n=delay_load, delay_step_samples=number("delay_step_samples", 0.0, True),
                      delay_cap_samples=number("delay_cap_samples", 0.0, True),
-                     elapsed_s=number("elapsed_s", 0.0))
-    gap_limit, budget = limits(rt.max_gap_samples, rt.max_extra_delay_samples, rt.margin)
+                     elapsed_s=number("elapsed_s", 0.0), **values)
+    if not consistent:
+        return rt
+    # a table written before the per-load limits: its budget did not count the design's delay
+    delay = design_delay if rt.per_load else 0.0
+    rule = "max_extra_delay_samples / margin" + (f" + the design's delay {delay:g}" if rt.per_load else "")
+    gap_limit, budget = limits(rt.max_gap_samples, rt.max_extra_delay_samples, rt.margin, delay)
     if rt.gap_limit_samples != gap_limit:
         raise GainTableError("ride_through.gap_limit_samples", rt.gap_limit_samples,
                              f"floor(max_gap_samples / margin) = {gap_limit}", source)
     if not math.isclose(rt.answer_budget_periods, budget, rel_tol=1e-12, abs_tol=1e-15):
         raise GainTableError("ride_through.answer_budget_periods", rt.answer_budget_periods,
-                             f"max_extra_delay_samples / margin = {budget:g}", source)
+                             f"{rule} = {budget:g}", source)
+    if rt.per_load:
+        _per_load_limits(rt, delay, source)
     return rt
+
+
+def _per_load_limits(rt: RideThrough, design_delay: float, source: str) -> None:
+    """The per-load lists of ``rt``: each grid load's limits the analysis' divided by the margin,
+    and the scalars the least of them (the worst load)."""
+    for i, (gap, delay) in enumerate(zip(rt.max_gap_samples_per_load, rt.max_extra_delay_samples_per_load,
+                                         strict=True)):
+        gap_limit, budget = limits(gap, delay, rt.margin, design_delay)
+        if rt.gap_limits_samples[i] != gap_limit:
+            raise GainTableError("ride_through.gap_limits_samples",
+                                 f"{rt.gap_limits_samples[i]} at index {i}",
+                                 f"floor(max_gap_samples_per_load / margin) = {gap_limit}", source)
+        if not math.isclose(rt.answer_budgets_periods[i], budget, rel_tol=1e-12, abs_tol=1e-15):
+            raise GainTableError("ride_through.answer_budgets_periods",
+                                 f"{rt.answer_budgets_periods[i]!r} at index {i}",
+                                 f"max_extra_delay_samples_per_load / margin + the design's delay "
+                                 f"{design_delay:g} = {budget:g}", source)
+    for scalar, name in (("max_gap_samples", "max_gap_samples_per_load"),
+                         ("max_extra_delay_samples", "max_extra_delay_samples_per_load")):
+        least = min(getattr(rt, name))
+        if getattr(rt, scalar) != least:
+            raise GainTableError(f"ride_through.{scalar}", getattr(rt, scalar),
+                                 f"the least of {name} ({least:g}): the worst load's", source)

@@ -11,7 +11,7 @@ from beamctl.gains import lqg
 from beamctl.gains.build import build_lqg_table, build_table, check_plan, nominal_rig
 from beamctl.gains.compensator import PLANE_CHANNELS
 from beamctl.gains.defaults import LQG_CHAIN, LQG_SETTINGS, default_table_path, paper_table_path
-from beamctl.gains.ridethrough import GapAnalysis, _DelayedPlant, gap_loop
+from beamctl.gains.ridethrough import GapAnalysis, RideThrough, _DelayedPlant, _fold, _places, gap_loop
 from beamctl.gains.rig import RigPlane
 from beamctl.gains.schedule import GainSchedule
 from beamctl.gains.table import GainTableError, content_sha256, load_table, write_table
@@ -117,7 +117,31 @@ def test_a_table_with_prediction_and_ride_through_reads_back_as_written(tmp_path
     assert set(data["ride_through"]) == {
         "growth_limit", "margin", "max_gap_samples", "gap_limit_samples", "gap_load_N", "gap_cap_samples",
         "max_extra_delay_samples", "answer_budget_periods", "delay_load_N", "delay_step_samples",
-        "delay_cap_samples", "elapsed_s"}
+        "delay_cap_samples", "elapsed_s", "max_gap_samples_per_load", "gap_limits_samples",
+        "max_extra_delay_samples_per_load", "answer_budgets_periods"}
+
+
+def test_the_per_load_limits_read_back_one_per_grid_load(tmp_path, small_lqg, paper_params):
+    """Written as lists, one value per grid load, read back as they were; the engine's limits
+    the analysis' over the margin, the answer budget on top of the design's own delay."""
+    rt = small_lqg.ride_through
+    g = len(small_lqg.loads_n)
+    delay = small_lqg.design.io.delay_samples
+    assert rt.per_load and delay > 0
+    for name in RideThrough.PER_LOAD:
+        assert len(getattr(rt, name)) == g, name
+    assert rt.gap_limits_samples == tuple(n // 2 for n in rt.max_gap_samples_per_load)
+    budgets = [delay + d / 2 for d in rt.max_extra_delay_samples_per_load]
+    assert rt.answer_budgets_periods == pytest.approx(budgets, rel=1e-15)
+    assert rt.max_gap_samples == min(rt.max_gap_samples_per_load)
+    assert rt.answer_budget_periods == pytest.approx(delay + rt.max_extra_delay_samples / 2, rel=1e-15)
+    path = write_table(small_lqg, tmp_path / "t.yaml")
+    data = yaml.safe_load(path.read_text())["ride_through"]
+    assert data["gap_limits_samples"] == list(rt.gap_limits_samples)
+    assert data["answer_budgets_periods"] == list(rt.answer_budgets_periods)
+    back = load_table(path, paper_params).ride_through
+    for name in RideThrough.PER_LOAD:
+        assert getattr(back, name) == getattr(rt, name), name
 
 
 def _rewrite(path, edit, rehash: bool) -> None:
@@ -140,12 +164,20 @@ def _more_delay(d):
     rt["answer_budget_periods"] = 0.9 / rt["margin"]
 
 
+def _longer_gap_at_the_first_load(d):
+    rt = d["ride_through"]
+    rt["max_gap_samples_per_load"][0] += 10
+    rt["gap_limits_samples"][0] = rt["max_gap_samples_per_load"][0] // 2
+
+
 @pytest.mark.parametrize("edit", [
-    _longer_gap, _more_delay,
+    _longer_gap, _more_delay, _longer_gap_at_the_first_load,
+    lambda d: d["ride_through"]["answer_budgets_periods"].__setitem__(0, 0.0),
     lambda d: d["ride_through"].__setitem__("gap_load_N", 0.0),
     lambda d: d["compensator"]["predict"][0][0].__setitem__(0, 1.0),
     lambda d: d.pop("ride_through"),
-], ids=["gap", "delay", "worst-load", "predict", "ride-through-removed"])
+], ids=["gap", "delay", "gap-per-load", "budget-per-load", "worst-load", "predict",
+        "ride-through-removed"])
 def test_a_changed_ride_through_or_prediction_is_refused_by_the_content_hash(tmp_path, small_lqg, edit):
     """Changed consistently (the limits still the analysis' over the margin): the hash."""
     path = write_table(small_lqg, tmp_path / "t.yaml")
@@ -153,6 +185,17 @@ def test_a_changed_ride_through_or_prediction_is_refused_by_the_content_hash(tmp
     with pytest.raises(GainTableError) as err:
         load_table(path)
     assert err.value.key == "sha256" and "changed after it was built" in str(err.value)
+
+
+def _budget_without_the_design_delay(d):
+    rt = d["ride_through"]
+    rt["answer_budget_periods"] = rt["max_extra_delay_samples"] / rt["margin"]
+
+
+def _worst_gap_not_the_least(d):
+    rt = d["ride_through"]
+    rt["max_gap_samples"] -= 2
+    rt["gap_limit_samples"] = rt["max_gap_samples"] // 2
 
 
 @pytest.mark.parametrize(("edit", "key", "words"), [
@@ -166,7 +209,28 @@ def test_a_changed_ride_through_or_prediction_is_refused_by_the_content_hash(tmp
     (lambda d: d["ride_through"].pop("margin"), "ride_through.margin", "missing"),
     (lambda d: d["ride_through"].__setitem__("note", 1), "ride_through.note", "only the fields"),
     (lambda d: d.__setitem__("ride_through", [1, 2]), "ride_through", "mapping"),
-])
+    (lambda d: d["ride_through"]["gap_limits_samples"].pop(), "ride_through.gap_limits_samples",
+     "one per grid load"),
+    (lambda d: d["ride_through"]["max_gap_samples_per_load"].append(3),
+     "ride_through.max_gap_samples_per_load", "a list of 2 whole numbers >= 0, one per grid load"),
+    (lambda d: d["ride_through"].__setitem__("answer_budgets_periods", 0.5),
+     "ride_through.answer_budgets_periods", "one per grid load"),
+    (lambda d: d["ride_through"]["max_extra_delay_samples_per_load"].__setitem__(1, -0.05),
+     "ride_through.max_extra_delay_samples_per_load", ">= 0"),
+    (lambda d: d["ride_through"]["max_gap_samples_per_load"].__setitem__(0, 2.5),
+     "ride_through.max_gap_samples_per_load", "whole numbers"),
+    (lambda d: d["ride_through"].pop("answer_budgets_periods"), "ride_through.answer_budgets_periods",
+     "come together"),
+    (lambda d: d["ride_through"]["gap_limits_samples"].__setitem__(0, 999), "ride_through.gap_limits_samples",
+     "floor(max_gap_samples_per_load / margin)"),
+    (lambda d: d["ride_through"]["answer_budgets_periods"].__setitem__(1, 0.0),
+     "ride_through.answer_budgets_periods", "+ the design's delay"),
+    (_budget_without_the_design_delay, "ride_through.answer_budget_periods", "+ the design's delay"),
+    (_worst_gap_not_the_least, "ride_through.max_gap_samples", "the least of max_gap_samples_per_load"),
+], ids=["predict-shape", "gap-limit", "budget", "gap-kind", "margin-missing", "unknown-field",
+        "not-a-mapping", "short-list", "long-list", "not-a-list", "negative", "per-load-kind",
+        "one-list-missing", "per-load-gap-limit", "per-load-budget", "budget-without-design-delay",
+        "scalar-not-the-worst"])
 def test_a_malformed_ride_through_or_prediction_is_refused_in_one_line_naming_the_key(
         tmp_path, small_lqg, edit, key, words):
     """Even with a hash that matches (a file written by something else): each field checked."""
@@ -186,6 +250,24 @@ def test_a_table_written_before_the_prediction_and_the_ride_through_still_loads(
     assert GainSchedule.from_table(old).matrices_at(2500.0).predict is None
 
 
+def test_a_table_written_before_the_per_load_limits_still_loads_with_its_scalars(tmp_path, small_lqg):
+    """Without the lists its answer budget was the extra delay over the margin alone; the engine
+    then applies the scalars at every load."""
+    path = write_table(small_lqg, tmp_path / "t.yaml")
+
+    def old(d):
+        rt = d["ride_through"]
+        for name in RideThrough.PER_LOAD:
+            rt.pop(name)
+        rt["answer_budget_periods"] = rt["max_extra_delay_samples"] / rt["margin"]
+
+    _rewrite(path, old, rehash=True)
+    rt = load_table(path).ride_through
+    assert not rt.per_load and rt.gap_limits_samples is None and rt.answer_budgets_periods is None
+    assert rt.answer_budget_periods == small_lqg.ride_through.max_extra_delay_samples / 2
+    assert rt.max_gap_samples == small_lqg.ride_through.max_gap_samples
+
+
 def test_an_unstable_table_carries_no_ride_through(paper_model):
     """No stationary loop to ride through from."""
     table = build_table(paper_model, [4000.0, 4500.0], force=True)
@@ -196,13 +278,26 @@ def test_an_unstable_table_carries_no_ride_through(paper_model):
 # the limits
 
 
-def test_the_shipped_tables_carry_their_ride_through_limits(shipped):
-    for table in (shipped, load_table(paper_table_path())):
+@pytest.fixture(scope="module")
+def paper():
+    return load_table(paper_table_path())
+
+
+def test_the_shipped_tables_carry_their_ride_through_limits_per_load(shipped, paper):
+    for table, horizon in ((shipped, 600), (paper, 250)):
         rt = table.ride_through
-        assert rt is not None and rt.growth_limit == 2.0 and rt.margin == 2.0
+        assert rt is not None and rt.growth_limit == 2.0 and rt.margin == 2.0 and rt.per_load
+        assert rt.gap_cap_samples == horizon, "0.1 s of samples"
         assert rt.gap_limit_samples == rt.max_gap_samples // 2
-        assert rt.answer_budget_periods == rt.max_extra_delay_samples / 2
+        delay = table.design.io.delay_samples
+        assert rt.answer_budget_periods == delay + rt.max_extra_delay_samples / 2
         assert rt.gap_load_n in [c.load_n for c in table.checks]
+        assert len(rt.gap_limits_samples) == len(table.loads_n)
+        assert rt.max_gap_samples == min(rt.max_gap_samples_per_load)
+        assert max(rt.max_gap_samples_per_load) <= horizon
+    # the worst is the top of the grid, far from the rest of it
+    assert shipped.ride_through.gap_limits_samples[-1] == shipped.ride_through.gap_limit_samples
+    assert shipped.ride_through.gap_limits_samples[0] > 50 * shipped.ride_through.gap_limit_samples
 
 
 def _mode1(model, load, n):
@@ -304,6 +399,100 @@ def test_the_gap_limit_is_the_longest_gap_survived_at_the_worst_load_walked_gap_
     peaks = [analysis.ratios(n)[0].max() for n in range(1, rt.max_gap_samples + 2)]
     assert all(p <= rt.growth_limit for p in peaks[:-1]) and peaks[-1] > rt.growth_limit, peaks
     assert peaks == sorted(peaks), "the peak grows with the gap"
+
+
+def _per_load_cases(table):
+    """(grid index, load, the check loads in the grid intervals next to it with their matrices)
+    of three grid loads of ``table``: the lowest and a middle one whose gap is under a quarter of
+    the horizon, and the highest that reaches the horizon (or the grid's top)."""
+    rt = table.ride_through
+    loads = list(table.loads_n)
+    below = [i for i, n in enumerate(rt.max_gap_samples_per_load) if 0 < n < rt.gap_cap_samples // 4]
+    capped = [i for i, n in enumerate(rt.max_gap_samples_per_load) if n >= rt.gap_cap_samples]
+    picks = [below[0], below[len(below) // 2], (capped or below)[-1]]
+    plan = check_plan(table)
+    cases = []
+    for i in picks:
+        near = [(load, point) for load, _, point in plan
+                if loads[max(i - 1, 0)] <= load <= loads[min(i + 1, len(loads) - 1)]]
+        cases.append((i, loads[i], near))
+    return cases
+
+
+@pytest.mark.parametrize("which", ["shipped", "paper"])
+def test_the_per_load_gap_is_an_independent_full_search_s_and_never_more(paper_model, shipped, paper, which):
+    """At three grid loads: the per-load search (started from the load above) against
+    GapAnalysis.max_gap without a start or bound, at the grid load and at the check loads of the
+    intervals next to it (whose limit may have replaced the grid load's): never more than the
+    grid load's own, and equal to it or to a neighbouring check load's; every gap up to it is
+    survived there (survival falls with the gap's length at these loads), the next one not."""
+    table = {"shipped": shipped, "paper": paper}[which]
+    rt = table.ride_through
+    comp = table.compensator
+    rig = nominal_rig(paper_model, table)
+
+    def analysis(load, point):
+        loop = gap_loop(paper_model, rig, load, point, comp.h, comp.plane_states["y"], comp.period_s)
+        return GapAnalysis(loop)
+
+    for i, load, near in _per_load_cases(table):
+        value = rt.max_gap_samples_per_load[i]
+        full = {at: analysis(at, point).max_gap(rt.gap_cap_samples) for at, point in near}
+        assert value <= full[load], (load, value, full)
+        assert value == full[load] or value in [full[at] for at in full if at != load], (load, value, full)
+        own = analysis(load, dict(near)[load])
+        assert all(own.survives(n) for n in range(1, value + 1))
+        assert value == rt.gap_cap_samples or not own.survives(value + 1)
+
+
+@pytest.mark.parametrize("which", ["shipped", "paper"])
+def test_the_per_load_delay_is_stable_up_to_it_with_rig_plane_s_own_sampling(paper_model, shipped, paper,
+                                                                              which):
+    """At the same grid loads, with one matrix exponential a delay: stable at every grid delay
+    up to the load's limit, unstable one step above it (unless the cap)."""
+    table = {"shipped": shipped, "paper": paper}[which]
+    rt = table.ride_through
+    step = rt.delay_step_samples
+    for i, load, near in _per_load_cases(table)[1:]:
+        point = dict(near)[load]
+        limit = rt.max_extra_delay_samples_per_load[i]
+        grid = [round(k * step, 10) for k in range(int(round(limit / step)) + 1)]
+        assert all(_radius(paper_model, table, point, load, d) < 1.0 for d in grid), (load, limit)
+        if limit < rt.delay_cap_samples:
+            assert _radius(paper_model, table, point, load, limit + step) >= 1.0, (load, limit)
+        assert rt.answer_budgets_periods[i] == table.design.io.delay_samples + limit / 2
+
+
+def test_the_gap_search_gallops_from_a_start_above_or_below_the_answer(paper_model, shipped):
+    """At the worst load of the shipped LQG: the same answer from no start, from below it and
+    from above it (where the gap of the start is lost)."""
+    rt = shipped.ride_through
+    comp = shipped.compensator
+    point = GainSchedule.from_table(shipped).matrices_at(rt.gap_load_n)
+    rig = nominal_rig(paper_model, shipped)
+
+    def search(start):
+        loop = gap_loop(paper_model, rig, rt.gap_load_n, point, comp.h, comp.plane_states["y"], comp.period_s)
+        return GapAnalysis(loop).max_gap(rt.gap_cap_samples, start=start)
+
+    assert {search(s) for s in (None, 0, 1, rt.max_gap_samples, 3 * rt.max_gap_samples, 500)} == {
+        rt.max_gap_samples}
+
+
+def test_a_check_load_between_grid_loads_that_survives_less_lowers_the_lesser_end():
+    """The engine takes the lesser end of a grid interval: a check load inside it with a lower
+    limit than that end replaces it (the upper on a tie); one at a grid load replaces that load's."""
+    loads = np.array([0.0, 100.0, 200.0])
+    plan = [(0.0, None, None), (50.0, None, None), (100.0, None, None), (150.0, None, None),
+            (175.0, 100.0, None), (200.0, None, None), (100.0, 0.0, None)]
+    own, others = _places(plan, loads)
+    assert own == [0, 2, 5]
+    assert others == [(4, 1, 2), (3, 1, 2), (6, 1, 1), (1, 0, 1)], "highest load first"
+    values, sources = [30, 20, 20], [0.0, 100.0, 200.0]
+    _fold(values, sources, 1, 2, 12, 150.0)
+    assert values == [30, 20, 12] and sources[2] == 150.0
+    _fold(values, sources, 0, 1, 5, 50.0)
+    assert values == [30, 5, 12] and sources[1] == 50.0
 
 
 def _radius(model, table, point, load, extra):
