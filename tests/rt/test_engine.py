@@ -536,7 +536,8 @@ class Sequence(Pair):
             self.call("cycle_on_time")
         # a latched fault or a stop, once at bias: an operator re-arms and starts again
         if self.r.state in (State.FAULT, State.STOPPED) and self.r.at_bias and rng.random() < 0.2:
-            self.call("rearm", self.sample())
+            # on a bad sample now and then: a start on non-finite strains faults at once
+            self.call("rearm", self.sample() if rng.random() < 0.9 else self.bad_sample())
             self.call("start")
             self.late_link = self.slow_cycles = False
 
@@ -1000,6 +1001,18 @@ def test_the_filtered_load_leaving_the_table_faults_on_the_sample_it_leaves(ship
     _faulted(w, Fault.LOAD_OUT_OF_TABLE_RANGE)
 
 
+def test_a_start_on_non_finite_strains_faults(shipped):
+    """Armed, the controller observes without checking; a start on the latest sample's
+    non-finite strains faults at once, before any control."""
+    w = Watch(Controller(shipped[0], shipped[1]))
+    w.do("arm", w.sample())
+    w.step()
+    w.step((0.0, np.nan, 0.0, 0.0))
+    assert w.c.state == State.ARMED
+    w.do("start")
+    _faulted(w, Fault.STRAIN_NOT_FINITE)
+
+
 def test_the_first_fault_wins(shipped):
     """Causes in one sample: the strains are checked before the load, channel by channel, and
     before the gap; later causes of any kind leave the latched fault, its time and its detail."""
@@ -1109,7 +1122,7 @@ def test_the_loop_faults_once_the_silence_exceeds_the_gap_limit(shipped):
         else:
             silences.append(((clock.now - last[0]) * rate, c.state))
 
-    loop = ControlLoop(c, hal, clock=clock, sleep=clock.sleep, on_cycle=on_cycle)
+    loop = ControlLoop(c, hal, clock=clock, sleep=clock.sleep, on_cycle=on_cycle, max_cycles=1000)
     result = loop.run(require_rt=False, acquire_rt=False)
     assert result.fault == Fault.STALE_INPUT.name, result.reason
     running = [s for s, state in silences if state == State.RUNNING]
