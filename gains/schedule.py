@@ -1,5 +1,8 @@
-"""The gain schedule: the compensator's matrices at the filtered axial load, offered to the
-control step as products that allocate nothing.
+"""The gain schedule: the compensator's matrices over the load grid, as the blocks the control
+step's products run on and as the matrices the checks analyse.
+
+The rule, which the compiled engine runs each sample (rt/engine.py ``_follow``, ``_settle``,
+``_product``) and which ``matrices_at`` states for a settled load:
 
 ``interpolate`` (default): the matrices are linear between the two grid points around the
 filtered load (the gain scheduling the paper names as future work).
@@ -9,22 +12,24 @@ gain of the point below, the loop is unstable between 3194 N and the next point;
 held the beam to 3223 N). The switch up from grid point i happens once the load passes
 L_i + h/2 and back down once it falls below L_(i-1) - h/2, so noise on the load cell cannot
 chatter between two gains.
-Outside the grid the edge point is held and ``out_of_range`` is raised; nothing is ever
-extrapolated. The load-cell value is low-pass filtered (first order) before the lookup.
+Outside the grid the edge point is held (the engine then faults LOAD_OUT_OF_TABLE_RANGE while
+running); nothing is ever extrapolated. The load-cell value is low-pass filtered (first order,
+coefficient ``alpha`` per sample) before the lookup.
 
-The step asks for products at the current load over its signal vector
-s = [y (4); xi (4); u_applied (4); x_c (n)] (gains/compensator.py)::
+The engine runs three products over the signal vector s = [y (4); xi (4); u_applied (4); x_c (n)]
+(gains/compensator.py)::
 
-    output(s, u)                u = -(C x_c + D y + Ki xi)            the law
-    update(s, x_c)              x_c = A x_c + B y + E u_applied       the compensator state
-    integral_effect(dxi, du)    du = -Ki dxi                          what an integral increment does to u
+    output      u = -(C x_c + D y + Ki xi)            the law
+    update      x_c = A x_c + B y + E u_applied       the compensator state
+    integral    du = -Ki dxi                          what an integral increment does to u (anti-windup)
 
-Each is one matrix-vector product with the block [M_i; S_i] stacked for the grid interval i in
-use (M_i the matrices of its lower grid point, S_i their slope in load), giving [M_i s; S_i s],
-and one more that weighs the two halves by [1, offset]: (M_i + offset S_i) s without forming
-the matrices (offset: the filtered load above grid point i; 0 in ``paper`` mode and outside the
-grid). ``matrices_at(load)`` gives the matrices the same rule settles on at a load (for the
-closed-loop check and plots).
+Each is one matrix-vector product with the block [M_i; S_i] of the grid interval i in use (M_i
+the matrices of its lower grid point, S_i their slope in load; ``_output_blocks``,
+``_update_blocks``, ``_integral_blocks``, ``stacked_blocks``), giving [M_i s; S_i s], weighed by
+[1, offset]: (M_i + offset S_i) s without forming the matrices (offset: the filtered load above
+grid point i; 0 in ``paper`` mode and outside the grid). This module builds those blocks and
+``matrices_at(load)``, the matrices the same rule settles on at a load (for the closed-loop
+checks and plots); it keeps no running state and runs no products itself.
 """
 
 from __future__ import annotations
@@ -53,8 +58,9 @@ def _stacked(matrices: np.ndarray, loads: np.ndarray) -> tuple[list[np.ndarray],
 
 
 class GainSchedule:
-    """The compensator at the filtered load. Call ``reset(load)`` before the loop, then
-    ``follow(load_cell_n)`` once per sample and the products as the step needs them."""
+    """The compensator of a gain table over its load grid: the blocks [M_i; S_i] the engine's
+    products run on, the load filter's and the hysteresis' settings, and the matrices at a
+    settled load (``matrices_at``)."""
 
     def __init__(self, loads_n: np.ndarray, compensator: Compensator, settings: ScheduleSettings,
                  sample_rate_hz: float | None = None) -> None:
@@ -69,7 +75,6 @@ class GainSchedule:
         self._alpha = 1.0 - math.exp(-2.0 * math.pi * settings.load_filter_hz / rate)
         self.compensator = compensator
         n = compensator.n_states
-        self.n_states = n
         self._slopes = {m: _stacked(getattr(compensator, m), loads)[1] for m in MATRICES}
         if compensator.predict is not None:
             self._slopes["predict"] = _stacked(compensator.predict, loads)[1]
@@ -86,19 +91,6 @@ class GainSchedule:
         self._output_blocks, _ = _stacked(output, loads)
         self._update_blocks, _ = _stacked(update, loads)
         self._integral_blocks, _ = _stacked(-compensator.ki, loads)
-        # [M_i s; S_i s] of each product, and viewed as two rows for the weighing by [1, offset]
-        self._output_tmp = np.zeros(8)
-        self._output_halves = self._output_tmp.reshape(2, 4)
-        self._update_tmp = np.zeros(2 * n)
-        self._update_halves = self._update_tmp.reshape(2, n)
-        self._integral_tmp = np.zeros(8)
-        self._integral_halves = self._integral_tmp.reshape(2, 4)
-        self._weights = np.array([1.0, 0.0])    # [1, offset]
-
-        self.filtered_load_n = self._first
-        self.index = 0             # grid point in use (inspection; the products need no caller to read it)
-        self.out_of_range = False
-        self.reset(self._first)
 
     @property
     def alpha(self) -> float:
@@ -120,18 +112,10 @@ class GainSchedule:
     def from_table(cls, table: GainTable) -> GainSchedule:
         return cls(table.loads_n, table.compensator, table.schedule, table.design.sample_rate_hz)
 
-    # -- the load -------------------------------------------------------------------------------
-    def reset(self, load_n: float) -> None:
-        """Start the filter at ``load_n`` (bumpless start) and settle on its grid point."""
-        if not math.isfinite(load_n):
-            load_n = self._first
-        self.filtered_load_n = load_n
-        self.out_of_range = load_n < self._first or load_n > self._last
-        self.index, self._weights[1] = self._settled(load_n)
-
     def _settled(self, load: float) -> tuple[int, float]:
         """(grid point, offset) at a load reached from below and settled: in ``paper`` mode the
-        grid point at or above it, else the point below and the load above it."""
+        grid point at or above it, else the point below and the load above it (the engine's
+        ``_settle``)."""
         if self._paper:
             return min(max(bisect.bisect_left(self._loads, load), 0), self._last_index), 0.0
         if load <= self._first:
@@ -141,54 +125,12 @@ class GainSchedule:
         i = min(max(bisect.bisect_right(self._loads, load) - 1, 0), self._last_index)
         return i, load - self._loads[i]
 
-    def _locate(self, load: float) -> None:
-        loads = self._loads
-        self.out_of_range = load < self._first or load > self._last
-        if self._paper:
-            i = self.index
-            while i < self._last_index and load > loads[i] + self._half_band:
-                i += 1
-            while i > 0 and load < loads[i - 1] - self._half_band:
-                i -= 1
-            self.index = i
-        else:
-            self.index, self._weights[1] = self._settled(load)
-
-    def follow(self, load_cell_n: float) -> None:
-        """Filter the new load-cell reading and move to the grid point (and offset) of the
-        filtered load. A non-finite reading is not fed to the filter: the matrices in use are
-        kept and ``out_of_range`` raised (the safety supervisor decides what to do about it)."""
-        if load_cell_n != load_cell_n or load_cell_n in (math.inf, -math.inf):
-            self.out_of_range = True
-            return
-        self.filtered_load_n += self._alpha * (load_cell_n - self.filtered_load_n)
-        self._locate(self.filtered_load_n)
-
-    # -- the products the step runs -------------------------------------------------------------
-    def output(self, s: np.ndarray, out: np.ndarray) -> None:
-        """u = -(C x_c + D y + Ki xi) at the current load into ``out`` [4]; ``s`` the signal
-        vector [y; xi; u_applied; x_c]."""
-        np.dot(self._output_blocks[self.index], s, out=self._output_tmp)
-        np.dot(self._weights, self._output_halves, out=out)
-
-    def update(self, s: np.ndarray, out: np.ndarray) -> None:
-        """x_c = A x_c + B y + E u_applied at the current load into ``out`` [n] (which may be
-        the x_c part of ``s``)."""
-        np.dot(self._update_blocks[self.index], s, out=self._update_tmp)
-        np.dot(self._weights, self._update_halves, out=out)
-
-    def integral_effect(self, dxi: np.ndarray, out: np.ndarray) -> None:
-        """du = -Ki dxi at the current load into ``out`` [4]: the change of u an integral
-        increment ``dxi`` would make (for anti-windup)."""
-        np.dot(self._integral_blocks[self.index], dxi, out=self._integral_tmp)
-        np.dot(self._weights, self._integral_halves, out=out)
-
     # -- for the checks and plots ---------------------------------------------------------------
     def matrices_at(self, load_n: float) -> CompensatorPoint:
-        """The matrices at a load reached from below and settled, by the rule the products
-        follow: interpolated, or in ``paper`` mode those of the grid point at or above it (the
-        strain prediction likewise, where the table has one). A new CompensatorPoint; the
-        schedule's own state (filter, grid point) is untouched."""
+        """The matrices at a load reached from below and settled, by the rule the engine's
+        products follow: interpolated, or in ``paper`` mode those of the grid point at or above
+        it (the strain prediction likewise, where the table has one). A new CompensatorPoint
+        (its arrays the caller's own)."""
         i, offset = self._settled(float(load_n))
         comp = self.compensator
         names = MATRICES if comp.predict is None else (*MATRICES, "predict")
