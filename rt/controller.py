@@ -450,8 +450,9 @@ class Controller:
             self.fv[e.IN_SILENT] = -1.0 if silent_periods is None else silent_periods
             e.cycle(self._buffer, self.iv, self.fv, self._mats, 0)
         else:
+            # the gap as a float: any count a backend reports (beyond int64 too) reaches the engine
             e.sample_cycle(self._core, self._nb, sample.timestamp, sample.sequence, sample.axial_load,
-                           sample.missed, sample.strains)
+                           float(sample.missed), sample.strains)
         return self.voltages
 
     def answer_sent(self, age_s: float) -> None:

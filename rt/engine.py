@@ -150,6 +150,7 @@ def _scratch(n):
 R_STATE = -1        # not allowed in this state
 R_NOT_AT_BIAS = -2  # the voltages have not ramped to bias yet
 
+GAP_COUNT_CAP = 4.0e18  # the longest gap counted (a count beyond int64 would overflow)
 SPAN_ROUNDING = 1e-12   # relative: far above the few ulps of the coefficients, far below any real excess
 
 
@@ -605,18 +606,26 @@ def cycle(buf, iv, fv, mats, sample):
         buf[I_INPUT_PERIOD_US] = (t - buf[I_TIME]) * 1e6
         buf[I_TIME] = t
         buf[I_SEQUENCE] = fv[IN_SEQUENCE]
-        missed = int(fv[IN_MISSED])
+        # compared as a float before it is a count: a gap of any length (beyond int64 too) faults
+        gap = fv[IN_MISSED]
         if running:
             _check_inputs(buf, iv, fv)
-            if missed > iv[V_GAP_LIMIT]:
-                _trip(buf, iv, fv, F_STALE_INPUT, missed, iv[V_GAP_LIMIT], -1)
-            elif missed > 0 and iv[V_STATE] == S_RUNNING and iv[V_LAW] == 1:
-                _bridge(buf, iv, fv, mats, missed)
-                flags += FLAG_BRIDGED
-                buf[I_BRIDGED] = missed
-                iv[V_BRIDGED] += missed
+            if gap < 0.0:
+                missed = 0
+            elif gap < GAP_COUNT_CAP:
+                missed = int(gap)
+            else:                                   # beyond int64, or NaN: the cap
+                missed = int(GAP_COUNT_CAP)
             if missed > iv[V_MAX_GAP]:
                 iv[V_MAX_GAP] = missed
+            if not gap <= iv[V_GAP_LIMIT]:
+                _trip(buf, iv, fv, F_STALE_INPUT, gap, iv[V_GAP_LIMIT], -1)
+            elif missed > 0:
+                if iv[V_STATE] == S_RUNNING and iv[V_LAW] == 1:
+                    _bridge(buf, iv, fv, mats, missed)
+                    flags += FLAG_BRIDGED
+                    buf[I_BRIDGED] = missed
+                    iv[V_BRIDGED] += missed
         for j in range(4):
             buf[I_Y + j] = fv[IN_Y + j]
         buf[I_LOAD] = fv[IN_LOAD]

@@ -407,7 +407,7 @@ class ReferenceController:
                     flags |= BRIDGED
                     r[COL["bridged"]] = missed
                     self.bridged_total += missed
-                self.longest_gap = max(self.longest_gap, missed)
+                self.longest_gap = max(self.longest_gap, min(missed, int(4.0e18)))   # the engine's cap
             self.strains[:] = sample.strains
             r[COL["load_N"]] = sample.axial_load
         if self.state == State.RUNNING:
