@@ -109,7 +109,9 @@ class CanBackend(HalBase):
         self.strain_full_scale = min(min(s.maximum, -s.minimum) for s in strain_signals)
         self.strain_lsb = max(s.scale for s in strain_signals)
         # the DAQ must sample at the rate the gains were designed for: measured over windows
-        # of RATE_WINDOW strain frames, refused when off by more than rate_tolerance (0: off)
+        # of RATE_WINDOW of its samples (the frames received and those their counter says were
+        # lost: a lost frame does not slow the DAQ's clock), refused when off by more than
+        # rate_tolerance (0: off)
         self.rate_tolerance = float(rate_tolerance)
         self._rate_window = max(64, int(sample_rate_hz * RATE_WINDOW_S))
         self._configure()

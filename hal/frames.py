@@ -437,22 +437,24 @@ def _count_reject(ks, code):
 
 
 @_jit()
-def _rate_off(ks, fs, stamp):
-    """Count a strain frame into the rate measurement; True when a window ends with the rate off
-    by more than the tolerance (the rate in F_RATE)."""
+def _rate_off(ks, fs, stamp, samples):
+    """Count ``samples`` of the DAQ (a strain frame and the samples its counter says were skipped
+    before it: frames lost on the way do not slow the DAQ's clock) into the rate measurement;
+    True when a window ends with the rate off by more than the tolerance (the rate in F_RATE)."""
     if fs[F_RATE_START] != fs[F_RATE_START]:
         fs[F_RATE_START] = stamp
         ks[K_RATE_COUNT] = 0
         return False
-    ks[K_RATE_COUNT] += 1
+    ks[K_RATE_COUNT] += samples
     if ks[K_RATE_COUNT] < ks[K_RATE_WINDOW]:
         return False
     elapsed = stamp - fs[F_RATE_START]
+    counted = ks[K_RATE_COUNT]
     fs[F_RATE_START] = stamp
     ks[K_RATE_COUNT] = 0
     if elapsed <= 0.0:
         return False
-    rate = ks[K_RATE_WINDOW] / elapsed
+    rate = counted / elapsed
     fs[F_RATE] = rate
     return abs(rate / fs[F_SAMPLE_RATE] - 1.0) > fs[F_RATE_TOLERANCE]
 
@@ -512,7 +514,10 @@ def _take(flags, frame_id, dlc, data, offset, n, stamp, now, ks, fs):
     verdict = _window(ks[K_SEQUENCE:K_SEQUENCE + A_INTS], fs[F_SEQUENCE:F_SEQUENCE + A_FLOATS], seq, arrival)
     if verdict != NEW and verdict != RESYNC:
         return _none()
-    if fs[F_RATE_TOLERANCE] > 0.0 and ks[K_DISCARDING] == 0 and _rate_off(ks, fs, arrival):
+    if verdict == RESYNC:                            # a new stream: its rate is measured afresh
+        fs[F_RATE_START] = np.nan
+    if (fs[F_RATE_TOLERANCE] > 0.0 and ks[K_DISCARDING] == 0
+            and _rate_off(ks, fs, arrival, 1 + ks[K_SEQUENCE + A_SKIPPED])):
         return (T_RATE, seq, np.int64(0), arrival, 0.0)
     if ks[K_HAVE_LOAD] == 0:
         return _none()                               # no load value yet: not a complete sample
