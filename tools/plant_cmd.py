@@ -74,9 +74,19 @@ def run_plant(args: argparse.Namespace) -> int:
           f"{plant.config.load.start:g} -> {plant.config.load.end:g} N at {plant.config.load.rate:g} N/s; "
           f"falls back to bias {1e3 * emulator.silence_timeout_s:g} ms after the last valid voltage frame",
           flush=True)
+    # a DAQ is hardware with a clock of its own: the emulator takes the real-time set-up the
+    # service takes (SCHED_FIFO below the controller's, locked memory, the garbage collector
+    # frozen: a collection stalls the plant for milliseconds), where granted
+    from beamctl.rt import realtime
+    from beamctl.rt.config import Realtime
+
+    granted = realtime.acquire(Realtime(priority=EMULATOR_PRIORITY, cpu=-1, lock_memory=True))
+    print(f"plant real-time set-up: {granted.get('scheduler', '-')}; garbage collector "
+          f"{granted.get('gc', '-')}", flush=True)
     try:
         emulator.run(samples)
     finally:
+        realtime.release()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         bus.shutdown()
@@ -87,6 +97,9 @@ def run_plant(args: argparse.Namespace) -> int:
           f"{sum(emulator.rejected.values())} rejected, {emulator.fallbacks} fallbacks to bias, "
           f"load {plant.axial_load:.0f} N, deflection {1e3 * d:.3f} mm at {angle:.0f} deg")
     return 0
+
+
+EMULATOR_PRIORITY = 70     # SCHED_FIFO of the emulator: below the controller's 80
 
 
 def run_budget(args: argparse.Namespace) -> int:
