@@ -37,7 +37,7 @@ HAL_DEFAULTS: dict[str, Any] = {
             "data_bitrate_bit_s": 4_000_000, "dbc": "", "record": "", "rate_tolerance": 0.05,
             # poll the bus for the last spin_s before each sample is due instead of sleeping
             # (hal/can_backend.py): the answer's latency for a share of a CPU; 0 sleeps always
-            "spin_s": 5e-5},
+            "spin_s": 1.2e-4},
 }
 
 # Keys renamed to carry their unit: a file that still sets an old one is refused, naming the new.
