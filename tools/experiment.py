@@ -28,10 +28,8 @@ have no curvature there (0.05 mm at 2000 N with the default bow), which gauges c
 from __future__ import annotations
 
 import math
-import os
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
@@ -399,16 +397,8 @@ def run_experiment(cfg: ServiceConfig, settings: dict, tables: dict[str, GainTab
                         live)
 
     started = time.perf_counter()
-
-    if engine == "kernel" and len(modes) > 1:
-        # the runs are independent and the kernel releases the GIL: one thread per run, as many
-        # at a time as there are CPUs
-        with ThreadPoolExecutor(max_workers=min(len(modes), os.cpu_count() or 1)) as pool:
-            futures = {mode: pool.submit(run, mode) for mode in modes}
-            traces = {mode: futures[mode].result() for mode in modes}
-    else:
-        traces = {mode: run(mode) for mode in modes}
-    wall_s = time.perf_counter() - started    # the runs may overlap: the time they took together
+    traces = {mode: run(mode) for mode in modes}
+    wall_s = time.perf_counter() - started
     if progress:
         progress(1000, 1000, "done")
     io = plant_settings(cfg, tables[modes[0]]).io
