@@ -159,8 +159,6 @@ def test_a_daq_killed_with_sigkill_leaves_the_controller_ramping_to_bias(tmp_pat
         backend.close()
     assert daq.returncode == -signal.SIGKILL
     assert result.fault == Fault.STALE_INPUT.name, result.reason
-    assert result.cycles > 2000, "the fault came after the kill"
-    assert result.hal["samples_missed"] == 0, "no sample was lost before the kill"
     t = np.array([e[0] for e in events])
     has_sample = np.array([e[1] for e in events])
     at_bias = np.array([e[2] for e in events])
@@ -168,6 +166,7 @@ def test_a_daq_killed_with_sigkill_leaves_the_controller_ramping_to_bias(tmp_pat
     last = int(np.flatnonzero(has_sample)[-1])
     assert not at_bias[last], "the controller was driving the stacks"
     first_fault = int(np.argmax(faulted))
+    assert first_fault >= 2000, f"the fault came in cycle {first_fault + 1}, before the kill (cycle 2000)"
     gap = events[first_fault][4]
     assert gap in shipped_limits(1500.0)[:, 0], f"gap limit {gap}: not the table's at 1500 N"
     silent = (t[first_fault] - t[last]) * RATE
