@@ -36,9 +36,9 @@ cycle without a pending command checks one attribute. The loop alone changes the
 a gain table comes prepared (loaded, checked, its arrays allocated) and the loop only swaps it in.
 
 Offline runs only: an ``accelerator`` (tools/simkernel.py) is offered each cycle before the
-read and may run uneventful cycles of a simulated run in compiled code with the same
-arithmetic; it returns how many, and leaves every cycle with an event (a fault, a stop, a
-command, a re-arm) to the loop.
+read and may run cycles of a simulated run in one compiled loop that calls the engine's cycle
+itself; it returns how many, and leaves the cycles after a fault or stop, and any cycle with a
+command, a re-arm or a stop request, to the loop.
 """
 
 from __future__ import annotations
@@ -210,7 +210,7 @@ class ControlLoop:
         self.sleep = sleep
         self.on_cycle = on_cycle
         # offline runs only (tools/simkernel.py): offered each cycle, it runs the cycles it can
-        # with the same arithmetic and returns how many; 0 leaves the next cycle to the loop
+        # (the engine's cycle in a compiled loop) and returns how many; 0 leaves the next to the loop
         self.accelerator = accelerator
         self.timing = LoopTiming()
         self.period = controller.period
