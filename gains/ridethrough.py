@@ -108,7 +108,10 @@ from beamctl.gains.closedloop import closed_loop_matrix
 from beamctl.gains.compensator import PLANE_CHANNELS, CompensatorPoint
 from beamctl.gains.rig import RigPlane
 from beamctl.models.fe import FEModel, plane_eigen, plane_indices
-from beamctl.models.iochain import DelayedZOH
+from beamctl.models.iochain import (
+    DelayedZOH,
+    _gamma,  # the one matrix exponential of a ZOH
+)
 
 GROWTH_LIMIT = 2.0          # the deflection's RMS may at most double during a gap and its recovery
 MARGIN = 2.0                # the engine's limits are the analysis' divided by this
@@ -605,15 +608,6 @@ class _DelayedPlant:
         zoh = DelayedZOH(ad=self.ad, b_now=b_now, b_before=b_before, b_direct=np.zeros((self.a.shape[0], 0)),
                          whole=whole, fraction=fraction)
         return zoh, self.c
-
-
-def _gamma(a: np.ndarray, b: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
-    """(exp(A t), int_0^t exp(A s) ds B) by one matrix exponential."""
-    n, m = a.shape[0], b.shape[1]
-    aug = np.zeros((n + m, n + m))
-    aug[:n, :n], aug[:n, n:] = a, b
-    phi = sla.expm(aug * t)
-    return phi[:n, :n], phi[:n, n:]
 
 
 def _sym(x: np.ndarray) -> np.ndarray:
