@@ -11,12 +11,14 @@ from beamctl.models.iochain import analog_filter
 from beamctl.models.plant import Plant, load_plant_config, plant_config
 
 RATE_HZ = 2500.0
-STEADY = {"start": 1500.0, "end": 1500.0}
+# a load on an anchor of the plant's load grid (94 x 16 N): its discretisation is the exact one,
+# not interpolated (models/plant.py), so the exactness checks below can ask for 1e-9
+STEADY = {"start": 1504.0, "end": 1504.0}
 FORCE_STEP = np.array([5.0, -3.0, 2.0, 4.0])
 
 
 def _plant(model, io=None, **settings) -> Plant:
-    """The beam at a steady 1500 N (no imperfection: at rest, no strain) with the chain ``io``."""
+    """The beam at a steady 1504 N (no imperfection: at rest, no strain) with the chain ``io``."""
     return Plant(model, plant_config({"sample_rate_hz": RATE_HZ, "load": STEADY, "io": io or {},
                                       **settings}))
 
@@ -38,7 +40,7 @@ def _varying_forces(samples: int) -> np.ndarray:
 def test_default_chain_is_the_beam_alone_sampled_with_a_zero_order_hold(paper_model):
     """No delay, no filter: the strains over 400 samples of varying forces on a ramping,
     bowed beam are those of the beam's own (A, B) discretised with a zero-order hold (the
-    plant before the I/O chain existed), to 1e-12 of their size."""
+    plant before the I/O chain existed), to 1e-6 of their size (the interpolated cells)."""
     plant = Plant(paper_model, plant_config({"sample_rate_hz": RATE_HZ,
                                              "load": {"start": 1800.0, "end": 2600.0, "rate": 2000.0},
                                              "bow": {"amplitude": 1e-4, "angle_deg": 234.0}}))
@@ -61,7 +63,9 @@ def test_default_chain_is_the_beam_alone_sampled_with_a_zero_order_hold(paper_mo
         load = plant.config.load.load_at(time_s)
     measured = _strains(plant, forces)
     scale = np.abs(expected).max()
-    np.testing.assert_allclose(measured, expected, rtol=1e-12, atol=1e-12 * scale,
+    # the plant interpolates the cells between exact anchors (static response within 1e-6 of
+    # itself, models/plant.py)
+    np.testing.assert_allclose(measured, expected, rtol=0, atol=1e-6 * scale,
                                err_msg="default I/O chain: strains differ from the beam's own ZOH")
     assert np.ptp(measured, axis=0).min() > 1e-3 * scale, "the forces must move every strain"
 
