@@ -298,9 +298,28 @@ def write_table(table: GainTable, path: str | Path) -> Path:
               f"# ({table.design.kind} design). Written by `beamctl gains build`; checked on load.\n"
               "# Do not edit by hand: the SHA-256 of the content would no longer match and\n"
               "# `beamctl run` refuses it.\n")
-    text = yaml.safe_dump(table.to_dict(), sort_keys=False, width=120, default_flow_style=None)
+    content = table.to_dict()
+    compensator = content["compensator"]
+    for name in (*MATRICES, "predict"):
+        if name in compensator:
+            compensator[name] = _FlowList(compensator[name])
+    text = yaml.dump(content, Dumper=_TableDumper, sort_keys=False, width=120, default_flow_style=None)
     p.write_text(header + text)
     return p
+
+
+class _FlowList(list):
+    """A matrix stack written as one YAML flow sequence: the same data as the block style, read
+    about ten times faster (config.schema.parse_yaml reads such a sequence of numbers as JSON)."""
+
+
+class _TableDumper(yaml.SafeDumper):
+    pass
+
+
+_TableDumper.add_representer(
+    _FlowList,
+    lambda dumper, value: dumper.represent_sequence("tag:yaml.org,2002:seq", value, flow_style=True))
 
 
 # ---------------------------------------------------------------------------------------------
