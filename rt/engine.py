@@ -1,7 +1,7 @@
 """The real-time engine: the control cycle, compiled once (numba), over preallocated arrays.
 
 Everything that happens per sample is here, in one implementation that the service loop, the
-offline simulations (tools/simkernel.py runs it inside its compiled loop) and the checks all run:
+offline simulations (simulation/simkernel.py runs it inside its compiled loop) and the checks all run:
 input checks, the load filter and the schedule, the bridge over missing samples by the
 estimator's prediction, integral action with anti-windup, the law, allocation to the six
 stacks with the clamp to the voltage range, excitation, the bumpless fade-in, the applied

@@ -22,20 +22,20 @@ before the controller was ready is discarded and counted, all but the newest sam
 At the end the final state is announced to the hardware (the DAQ sees STOPPED or FAULT).
 
 The loop installs no signal handler: a command that wants SIGINT and SIGTERM to stop the run
-installs them (tools/signals.py ``stop_on_signals``) and passes the ``StopRequest`` they set.
+installs them (common/signals.py ``stop_on_signals``) and passes the ``StopRequest`` they set.
 The loop looks at it every cycle: the voltages ramp to bias, telemetry is flushed, and ``run``
 returns normally; ``RunResult.signal_received`` names the signal, so that the caller decides
 what it means (the service: the operator's stop; a simulated experiment: cut short). Without a
 request, a KeyboardInterrupt leaves the loop through the emergency ramp to bias.
 
 Operator commands (start, stop, rearm, gains: ``OperatorCommand``) come from another thread (the
-service's control socket, tools/control.py) through ``post``; the loop carries out or refuses
+service's control socket, service/control.py) through ``post``; the loop carries out or refuses
 a pending command after the cycle's read, before its step (a re-arm starts from the cycle's
 sample), and records it in the sample's ``operator_command`` column (``operator_labels``). A
 cycle without a pending command checks one attribute. The loop alone changes the controller:
 a gain table comes prepared (loaded, checked, its arrays allocated) and the loop only swaps it in.
 
-Offline runs only: an ``accelerator`` (tools/simkernel.py) is offered each cycle before the
+Offline runs only: an ``accelerator`` (simulation/simkernel.py) is offered each cycle before the
 read and may run cycles of a simulated run in one compiled loop that calls the engine's cycle
 itself; it returns how many, and leaves the cycles after a fault or stop, and any cycle with a
 command, a re-arm or a stop request, to the loop.
@@ -209,7 +209,7 @@ class ControlLoop:
         self.clock = clock
         self.sleep = sleep
         self.on_cycle = on_cycle
-        # offline runs only (tools/simkernel.py): offered each cycle, it runs the cycles it can
+        # offline runs only (simulation/simkernel.py): offered each cycle, it runs the cycles it can
         # (the engine's cycle in a compiled loop) and returns how many; 0 leaves the next to the loop
         self.accelerator = accelerator
         self.timing = LoopTiming()

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from beamctl.common.signals import Interrupted, stop_on_signals
 from beamctl.gains.defaults import default_table_path
 from beamctl.gains.table import load_table
 from beamctl.hal.base import Sample
@@ -25,7 +26,6 @@ from beamctl.hal.dbc import Contract
 from beamctl.rt.config import controller_config
 from beamctl.rt.controller import Controller
 from beamctl.tools.argtypes import number, steps
-from beamctl.tools.signals import Interrupted, stop_on_signals
 
 EMULATOR_PRIORITY = 70         # SCHED_FIFO of the emulator's process (the controller's is 80)
 
@@ -173,7 +173,7 @@ def _timer_run(cycles: int, what: str, telemetry: Path | None = None, live: str 
     from beamctl.rt.allocation import geometry
     from beamctl.rt.loop import ControlLoop
     from beamctl.rt.telemetry import TelemetryWriter
-    from beamctl.tools import live as live_view
+    from beamctl.service import live as live_view
 
     table = load_table(default_table_path())
     config = controller_config({"pacing": "timer"})
@@ -392,8 +392,8 @@ def sim_realtime_factor() -> dict:
     import tempfile
     from pathlib import Path
 
-    from beamctl.tools.experiment import experiment_config, run_mode
-    from beamctl.tools.service import load_gain_table
+    from beamctl.service.setup import load_gain_table
+    from beamctl.simulation.experiment import experiment_config, run_mode
 
     cfg, settings = experiment_config()
     with tempfile.TemporaryDirectory() as tmp:
@@ -412,9 +412,9 @@ def offline_timing(repeats: int = 3) -> dict:
     import numpy as np
 
     from beamctl.models.plant import clear_discretisations
-    from beamctl.tools import simkernel
-    from beamctl.tools.experiment import experiment_config, run_mode, summarise
-    from beamctl.tools.service import load_gain_table
+    from beamctl.service.setup import load_gain_table
+    from beamctl.simulation import simkernel
+    from beamctl.simulation.experiment import experiment_config, run_mode, summarise
 
     cfg, settings = experiment_config()
     table = load_gain_table(cfg)

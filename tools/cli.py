@@ -24,8 +24,8 @@ import sys
 import threading
 from typing import NoReturn
 
-from beamctl.tools.outputs import OutputPathError
-from beamctl.tools.signals import Interrupted
+from beamctl.common.outputs import OutputPathError
+from beamctl.common.signals import Interrupted
 
 # Only the standard library and the two modules above are imported before main() runs: the
 # rest (numpy, scipy, python-can: about a second) is imported inside it, so that a Ctrl-C
@@ -109,10 +109,10 @@ def _discard_stdout() -> None:
 
 def _run(argv: list[str] | None) -> int:
     """Parse ``argv`` and run the command; every refusal and interruption in one line."""
+    from beamctl.common.extras import MissingExtraError
     from beamctl.config.schema import ConfigError
     from beamctl.rt.live import LiveError
     from beamctl.rt.telemetry import TelemetryError
-    from beamctl.tools.extras import MissingExtraError
 
     name = "beamctl"
     try:

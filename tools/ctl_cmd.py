@@ -1,5 +1,5 @@
 """``beamctl ctl start|stop|rearm|status|gains TABLE``: operator commands to a running
-``beamctl run`` over its control socket (tools/control.py).
+``beamctl run`` over its control socket (service/control.py).
 
 Exit status: 0 done, 1 the service refused (it says why), 2 no service, no permission or no
 answer (one line).
@@ -12,7 +12,7 @@ import json
 import sys
 from pathlib import Path
 
-from beamctl.tools.control import ControlError, default_socket_path, request
+from beamctl.service.control import ControlError, default_socket_path, request
 
 GAINS_TIMEOUT_S = 120.0
 ACTIONS = {

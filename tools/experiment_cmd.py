@@ -7,13 +7,18 @@ import json
 import time
 from pathlib import Path
 
+from beamctl.common.outputs import check_dir, write_text
+from beamctl.common.signals import stop_on_signals
+from beamctl.reports import plots
 from beamctl.rt.live import check_socket_path
-from beamctl.tools import plots
-from beamctl.tools.experiment import check_engine, experiment_tables, load_experiment_config, run_experiment
-from beamctl.tools.live import add_live_argument
-from beamctl.tools.outputs import check_dir, write_text
+from beamctl.service.live import add_live_argument
+from beamctl.simulation.experiment import (
+    check_engine,
+    experiment_tables,
+    load_experiment_config,
+    run_experiment,
+)
 from beamctl.tools.progress import ProgressBar
-from beamctl.tools.signals import stop_on_signals
 
 REPORT_FILES = (*plots.EXPERIMENT_FIGURES, "summary.txt", "summary.json")
 

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from beamctl.common.outputs import check_dir, check_file, write_text
 from beamctl.config.schema import ConfigError, read_yaml
 from beamctl.models.fit import (
     ALIASES,
@@ -26,10 +27,9 @@ from beamctl.models.fit import (
 )
 from beamctl.models.measured import FrfData
 from beamctl.models.params import ModelParameters
+from beamctl.service.setup import load_model_file
 from beamctl.tools import argtypes
-from beamctl.tools.outputs import check_dir, check_file, write_text
 from beamctl.tools.progress import ProgressBar
-from beamctl.tools.service import load_model_file
 
 EXIT_NOT_CONVERGED = 1
 FIG5A = "fig5a_frequency_response.png"
@@ -135,7 +135,7 @@ def load_fitted(path: str) -> tuple[ModelParameters, float | None]:
 def figure_5a(measured: list[FrfData], before: ModelParameters,
               fitted: tuple[ModelParameters, float | None] | None, path: Path) -> Path:
     """Figure 5a for the first measurement: Gy and Gz measured, the model before and after."""
-    from beamctl.tools import plots
+    from beamctl.reports import plots
 
     d = measured[0]
     freqs = d.frequencies_hz
@@ -146,7 +146,7 @@ def figure_5a(measured: list[FrfData], before: ModelParameters,
 
 
 def run(args: argparse.Namespace) -> int:
-    from beamctl.tools.frf_files import read_frf
+    from beamctl.identification.frf_files import read_frf
 
     start = load_model_file(args.config)
     settings = FitSettings(parameters=tuple(p.strip() for p in args.params.split(",") if p.strip()),

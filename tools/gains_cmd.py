@@ -10,15 +10,15 @@ from pathlib import Path
 
 import numpy as np
 
+from beamctl.common.outputs import check_dir, check_file, replacing, write_text
 from beamctl.config.schema import ConfigError
 from beamctl.gains.build import build_lqg_table, build_table, closed_loop_checks
 from beamctl.gains.defaults import DESIGNS, default_table_path, paper_table_path
 from beamctl.gains.table import GainTable, changed_file_message, load_table, write_table
 from beamctl.models import build_model
+from beamctl.service.setup import load_model_file
 from beamctl.tools import argtypes
-from beamctl.tools.outputs import check_dir, check_file, replacing, write_text
 from beamctl.tools.progress import ProgressBar
-from beamctl.tools.service import load_model_file
 
 
 def parse_grid(text: str) -> np.ndarray:
@@ -224,10 +224,10 @@ def run_check(args: argparse.Namespace) -> int:
 
 
 def _write_worst_rig(out, path: str, table: GainTable, robust: dict) -> None:
-    """The worst rig as a scenario of ``beamctl experiment`` (tools/experiment.rig_scenario)."""
+    """The worst rig as a scenario of ``beamctl experiment`` (simulation/experiment.rig_scenario)."""
     import yaml
 
-    from beamctl.tools.experiment import UNLIMITED_STACKS, rig_scenario
+    from beamctl.simulation.experiment import UNLIMITED_STACKS, rig_scenario
 
     scenario = rig_scenario(table, str(Path(path).resolve()), robust["worst_rig_si"])
     onset = ("stable to the end of the table" if robust["censored"]
@@ -354,7 +354,7 @@ def run_show(args: argparse.Namespace) -> int:
     for i in range(0, len(table.loads_n), step):
         print(f"{table.loads_n[i]:8.0f} " + " ".join(f"{rows[i, c]:11.4g}" for c in cols))
     if plot_dir:
-        from beamctl.tools import plots
+        from beamctl.reports import plots
 
         path = plots.gains_vs_load(table, plot_dir / "gains_vs_load.png")
         print(f"\nwrote {path}")

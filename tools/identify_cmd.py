@@ -5,13 +5,13 @@ from __future__ import annotations
 import argparse
 import json
 
+from beamctl.common.signals import stop_on_signals
+from beamctl.identification.excitation import SIGNALS, SUPPORT_INPUTS
+from beamctl.identification.identify import IdentificationError, IdentifySettings, identify
 from beamctl.models.measured import resonances
+from beamctl.service.setup import load_gain_table, load_service_config
 from beamctl.tools import argtypes
-from beamctl.tools.excitation import SIGNALS, SUPPORT_INPUTS
-from beamctl.tools.identify import IdentificationError, IdentifySettings, identify
 from beamctl.tools.progress import ProgressBar
-from beamctl.tools.service import load_gain_table, load_service_config
-from beamctl.tools.signals import stop_on_signals
 
 EXIT_STOPPED = 1
 
@@ -57,7 +57,7 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from beamctl.tools.frf_files import check_frf_out, write_frf
+    from beamctl.identification.frf_files import check_frf_out, write_frf
 
     cfg = load_service_config(args.config)
     settings = IdentifySettings(load_n=args.load, signal=args.signal, band_hz=args.band,

@@ -10,12 +10,12 @@ from pathlib import Path
 
 import numpy as np
 
+from beamctl.common.outputs import OutputPathError, check_dir, check_file, replacing
 from beamctl.rt.telemetry import TelemetryReader, read_telemetry
-from beamctl.tools.outputs import OutputPathError, check_dir, check_file, replacing
 
 
 def add_parser(sub) -> None:
-    from beamctl.tools.recordings import FORMATS
+    from beamctl.reports.recordings import FORMATS
 
     p = sub.add_parser("log", help="telemetry files: export to MDF4/HDF5/.mat/.csv, plot")
     lsub = p.add_subparsers(dest="log_command", metavar="ACTION", required=True)
@@ -49,7 +49,7 @@ def _read(file: str, command: str) -> tuple[dict, np.ndarray]:
 
 
 def run_export(args: argparse.Namespace) -> int:
-    from beamctl.tools import recordings
+    from beamctl.reports import recordings
 
     what = "--out" if args.out else "--out (default)"
     out = check_file(args.out or Path(args.file).with_suffix(recordings.FORMATS[args.to]), what)
@@ -71,8 +71,8 @@ def run_export(args: argparse.Namespace) -> int:
 
 
 def run_plot(args: argparse.Namespace) -> int:
-    from beamctl.tools import report
-    from beamctl.tools.plots import save
+    from beamctl.reports import report
+    from beamctl.reports.plots import save
 
     out_dir = check_dir(args.dir, "DIR")
     run = report.load_run(args.file)

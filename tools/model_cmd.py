@@ -8,12 +8,12 @@ import json
 
 import numpy as np
 
+from beamctl.common.outputs import check_dir
 from beamctl.models import build_model, critical_load, eigenfrequencies, reduce
 from beamctl.models.fe import FEModel
 from beamctl.models.modal import ModalModel
+from beamctl.service.setup import load_model_file
 from beamctl.tools import fit_cmd
-from beamctl.tools.outputs import check_dir
-from beamctl.tools.service import load_model_file
 
 TABLE_LOADS_N = (0, 500, 1000, 1500, 2000, 2500, 3000)
 FIGURE6_LOAD_N = 2000.0
@@ -94,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
     plot_dir = check_dir(args.plot, "--plot") if args.plot else None
     measured = []
     if args.frf:
-        from beamctl.tools.frf_files import read_frf
+        from beamctl.identification.frf_files import read_frf
 
         measured = [read_frf(f) for f in args.frf]
     fitted = fit_cmd.load_fitted(args.fitted) if args.fitted else None
@@ -106,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         print_table(s, args.config or "paper defaults (models/paper.yaml)")
     if plot_dir:
-        from beamctl.tools import plots
+        from beamctl.reports import plots
 
         written = [
             plots.eigenfrequencies_vs_load(model, reduced, plot_dir / "fig5b_eigenfrequencies.png",

@@ -7,10 +7,10 @@ import argparse
 import sys
 import time
 
+from beamctl.common.signals import stop_on_signals
+from beamctl.service.live import default_live_path
+from beamctl.service.monitor import Monitor
 from beamctl.tools.argtypes import number, positive
-from beamctl.tools.live import default_live_path
-from beamctl.tools.monitor import Monitor
-from beamctl.tools.signals import stop_on_signals
 
 
 def _port(text: str) -> int:

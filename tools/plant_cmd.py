@@ -13,8 +13,8 @@ from beamctl.hal.base import HalConfigurationError
 from beamctl.hal.budget import LIMIT, bus_budget
 from beamctl.hal.config import check_bitrates
 from beamctl.hal.dbc import Contract
+from beamctl.service.setup import build_plant, load_gain_table, load_service_config, plant_geometry
 from beamctl.tools.argtypes import positive, seconds
-from beamctl.tools.service import build_plant, load_gain_table, load_service_config, plant_geometry
 
 
 def parse_can(text: str) -> tuple[str, str]:

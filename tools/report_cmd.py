@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from beamctl.tools.outputs import OutputPathError, check_file
+from beamctl.common.outputs import OutputPathError, check_file
 
 
 def add_parser(sub) -> None:
@@ -22,7 +22,7 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from beamctl.tools import report
+    from beamctl.reports import report
 
     what = "--out" if args.out else "--out (default)"
     out = check_file(args.out or Path(args.recording).with_suffix(".html"), what)

@@ -9,7 +9,7 @@ re-arms with SIGUSR1 (``systemctl kill -s USR1 beamctl``) or stops the service. 
 it reports readiness and feeds the watchdog from the control loop. With ``--live`` the telemetry
 writer also sends decimated records to ``beamctl monitor`` (rt/live.py), never waiting for it.
 
-The operator commands the running service over its control socket (tools/control.py, ``beamctl
+The operator commands the running service over its control socket (service/control.py, ``beamctl
 ctl``): start (after ``--hold``, which arms and waits at bias), stop, rearm, gains TABLE, status.
 The socket is bound before anything else starts, so a second service on the same socket is
 refused in one line.
@@ -24,6 +24,8 @@ import sys
 import threading
 from pathlib import Path
 
+from beamctl.common.outputs import check_file, check_new_file
+from beamctl.common.signals import stop_on_signals
 from beamctl.gains.table import GainTable
 from beamctl.hal.base import HalBase, HalError
 from beamctl.rt import realtime
@@ -31,12 +33,10 @@ from beamctl.rt.controller import Controller
 from beamctl.rt.live import check_socket_path
 from beamctl.rt.loop import ControlLoop
 from beamctl.rt.telemetry import TelemetryWriter
-from beamctl.tools import live as live_view
-from beamctl.tools.argtypes import seconds
-from beamctl.tools.control import ControlError, ControlServer, default_socket_path
-from beamctl.tools.outputs import check_file, check_new_file
-from beamctl.tools.sdnotify import Notifier
-from beamctl.tools.service import (
+from beamctl.service import live as live_view
+from beamctl.service.control import ControlError, ControlServer, default_socket_path
+from beamctl.service.sdnotify import Notifier
+from beamctl.service.setup import (
     ServiceConfig,
     TableSwaps,
     build_hal,
@@ -44,7 +44,7 @@ from beamctl.tools.service import (
     load_gain_table,
     load_service_config,
 )
-from beamctl.tools.signals import stop_on_signals
+from beamctl.tools.argtypes import seconds
 
 
 def add_parser(sub) -> None:

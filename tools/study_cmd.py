@@ -1,4 +1,4 @@
-"""``beamctl study``: an uncertainty study (tools/study.py) on a Dask cluster: an embedded local
+"""``beamctl study``: an uncertainty study (simulation/study.py) on a Dask cluster: an embedded local
 one by default, or an existing one (``--scheduler tcp://host:port``). Rows are appended to
 ``DIR/samples.csv`` as they arrive; a study stopped part-way resumes where it stopped when run
 again with the same study file and folder."""
@@ -12,11 +12,11 @@ import json
 import time
 from pathlib import Path
 
+from beamctl.common.outputs import check_dir, replacing, write_text
 from beamctl.config.schema import ConfigError
+from beamctl.simulation.study import Study, Task, design_texts, load_study, run_task, summarise, tasks
 from beamctl.tools import argtypes
-from beamctl.tools.outputs import check_dir, replacing, write_text
 from beamctl.tools.progress import ProgressBar
-from beamctl.tools.study import Study, Task, design_texts, load_study, run_task, summarise, tasks
 
 ROWS = "samples.csv"
 STUDY = "study.json"
@@ -169,7 +169,7 @@ def run(args: argparse.Namespace) -> int:
             cluster.close()
     summary = summarise(rows, list(study.parameters), counts["wall_s"])
     summary.update(resumed=counts["resumed"], run=counts["run"], kind=study.kind)
-    from beamctl.tools import plots
+    from beamctl.reports import plots
 
     figures = plots.study_figures(rows, study.designs, out, study.kind)
     write_text(out / "summary.json", json.dumps(summary, indent=1))

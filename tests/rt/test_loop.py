@@ -11,6 +11,7 @@ import time
 import numpy as np
 import pytest
 
+from beamctl.common.signals import stop_on_signals
 from beamctl.gains.defaults import paper_table_path
 from beamctl.gains.table import load_table
 from beamctl.hal.base import HalConnectionLost
@@ -19,7 +20,6 @@ from beamctl.rt.controller import COL, FLAG_NO_NEW_SAMPLE, RECORD_COLUMNS, Contr
 from beamctl.rt.loop import ControlLoop
 from beamctl.rt.safety import Fault, State
 from beamctl.rt.telemetry import TelemetryWriter, read_telemetry
-from beamctl.tools.signals import stop_on_signals
 from tests.rt.fakes import ScriptedHal
 
 DEFLECTED = ((8e-5, -4e-5, 3e-5, 1e-5), 1500.0)
@@ -113,7 +113,7 @@ def test_overrun_streak_faults_in_timer_pacing(table):
 
 
 def test_sigterm_ramps_to_bias_and_stops(table):
-    """SIGTERM through the handlers a command installs (tools/signals.py), the loop's stop request."""
+    """SIGTERM through the handlers a command installs (common/signals.py), the loop's stop request."""
     loop, hal = _loop(table, [], pacing="timer", default=oscillating)
     timer = threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGTERM))
     previous = signal.signal(signal.SIGTERM, lambda *_: None)  # never let it reach pytest

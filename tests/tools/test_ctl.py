@@ -18,9 +18,9 @@ from beamctl.rt.controller import COL
 from beamctl.rt.loop import operator_labels
 from beamctl.rt.safety import State
 from beamctl.rt.telemetry import read_telemetry
-from beamctl.tools import control
+from beamctl.service import control
+from beamctl.service.control import ControlError, default_socket_path, request
 from beamctl.tools.cli import main
-from beamctl.tools.control import ControlError, default_socket_path, request
 from tests.tools.processes import beamctl
 
 DEADLINE_S = 60.0       # for a state to be reached, on a slow shared machine
@@ -325,7 +325,7 @@ def test_a_table_swap_is_read_off_the_service_and_checked_as_at_a_start(tmp_path
     from beamctl.gains.table import write_table
     from beamctl.models.iochain import IOChain
     from beamctl.rt.controller import Controller
-    from beamctl.tools.service import TableSwaps, build_hal, load_gain_table, load_service_config
+    from beamctl.service.setup import TableSwaps, build_hal, load_gain_table, load_service_config
 
     cfg = dataclasses.replace(load_service_config(None), table_path=paper_table_path())
     table = load_gain_table(cfg)

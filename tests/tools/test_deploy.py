@@ -3,7 +3,7 @@
 import configparser
 from pathlib import Path
 
-from beamctl.tools.service import load_service_config
+from beamctl.service.setup import load_service_config
 
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
 
@@ -25,7 +25,7 @@ def test_systemd_unit_runs_the_service_with_watchdog_and_realtime_limits():
 
 
 def test_the_unit_makes_the_directory_where_beamctl_ctl_looks_for_the_service():
-    from beamctl.tools import control
+    from beamctl.service import control
 
     unit = configparser.ConfigParser(strict=False, interpolation=None)
     unit.read(DEPLOY / "beamctl.service")

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from beamctl.config.schema import ConfigError
+from beamctl.identification.excitation import force_gains, periodic_signal, voltage_directions
 from beamctl.models.actuators import StackGeometry
-from beamctl.tools.excitation import force_gains, periodic_signal, voltage_directions
 
 RATE_HZ = 6000.0
 BAND_HZ = (50.0, 800.0)

@@ -7,15 +7,16 @@ import signal
 import numpy as np
 import pytest
 
+from beamctl.common.signals import Interrupted, stop_on_signals
 from beamctl.config.schema import ConfigError
 from beamctl.models import build_model, critical_load, load_parameters
 from beamctl.models.iochain import IOChain
+from beamctl.reports import plots
 from beamctl.rt.controller import COL
 from beamctl.rt.safety import State
 from beamctl.rt.telemetry import read_telemetry
-from beamctl.tools import experiment_cmd, plots
-from beamctl.tools.cli import main
-from beamctl.tools.experiment import (
+from beamctl.service.setup import load_gain_table, plant_parameters
+from beamctl.simulation.experiment import (
     BOW_AMPLITUDE_M,
     direction_at,
     experiment_config,
@@ -23,9 +24,9 @@ from beamctl.tools.experiment import (
     paper_table,
     run_mode,
 )
+from beamctl.tools import experiment_cmd
+from beamctl.tools.cli import main
 from beamctl.tools.experiment_cmd import REPORT_FILES
-from beamctl.tools.service import load_gain_table, plant_parameters
-from beamctl.tools.signals import Interrupted, stop_on_signals
 from tests.tools.processes import beamctl, interrupt_when
 
 CRITICAL_LOAD_N = 3193.5
@@ -138,7 +139,7 @@ def test_bad_scenario_is_refused_naming_the_key(tmp_path, capsys, data, key):
     assert key in capsys.readouterr().err
     with pytest.raises(ConfigError):
         cfg, _ = experiment_config(data)
-        from beamctl.tools.service import build_plant, load_gain_table
+        from beamctl.service.setup import build_plant, load_gain_table
 
         build_plant(cfg, load_gain_table(cfg))
 
@@ -347,7 +348,7 @@ def test_the_shipped_design_holds_the_worst_rigs_of_the_box_to_their_own_critica
     from beamctl.gains.defaults import default_table_path
     from beamctl.gains.robust import DEFAULT_BOX, rig_si
     from beamctl.gains.table import load_table
-    from beamctl.tools.experiment import rig_scenario
+    from beamctl.simulation.experiment import rig_scenario
 
     table = load_table(default_table_path())
     rig = rig_si(table, DEFAULT_BOX, WORST_RIGS[name])

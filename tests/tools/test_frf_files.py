@@ -10,8 +10,8 @@ import pytest
 import scipy.io
 
 from beamctl.config.schema import ConfigError
+from beamctl.identification.frf_files import read_frf, write_frf
 from beamctl.models.measured import INPUTS, OUTPUTS, FrfData, nan_matrix
-from beamctl.tools.frf_files import read_frf, write_frf
 
 NF = 6
 # the y bending plane measured (inputs yA and yB excited), the z plane not

@@ -118,8 +118,8 @@ def test_the_worst_rig_is_written_as_a_scenario_of_the_experiment(robust_run):
     """The scenario names the rig's own beam and delay, and stacks that do not limit: the
     controller believes 4 x 3 N/V, and the rig's own stacks give as much (a stack gain of 1)."""
     from beamctl.models import load_parameters
-    from beamctl.tools.experiment import experiment_config
-    from beamctl.tools.service import plant_parameters
+    from beamctl.service.setup import plant_parameters
+    from beamctl.simulation.experiment import experiment_config
 
     _, report, _, where = robust_run
     robust = report["robust"]

@@ -7,10 +7,10 @@ import pytest
 import scipy.io
 import yaml
 
+from beamctl.identification.frf_files import read_frf
 from beamctl.models import build_model, critical_load
+from beamctl.service.setup import load_model_file, service_config
 from beamctl.tools.cli import main
-from beamctl.tools.frf_files import read_frf
-from beamctl.tools.service import load_model_file, service_config
 
 from .processes import beamctl, interrupt_when
 from .test_identify import RIG

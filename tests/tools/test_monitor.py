@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from beamctl.rt.live import LiveError, LivePublisher
+from beamctl.service.monitor import Monitor
 from beamctl.tools.cli import main
-from beamctl.tools.monitor import Monitor
 
 COLUMNS = ["time_s", "sequence", "state", "fault", "flags", "load_N", "not_for_the_page"]
 RATE_HZ = 2500.0

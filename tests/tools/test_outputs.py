@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from beamctl.tools import outputs
-from beamctl.tools.outputs import OutputPathError, check_dir, check_file, replacing, write_text
+from beamctl.common import outputs
+from beamctl.common.outputs import OutputPathError, check_dir, check_file, replacing, write_text
 
 # Tests run as root, for whom permission bits stop nothing: /sys refuses new files to everyone.
 UNWRITABLE = Path("/sys")

@@ -10,8 +10,8 @@ import pytest
 
 from beamctl.gains.defaults import default_table_path, paper_table_path
 from beamctl.gains.table import load_table
-from beamctl.tools import plots
-from beamctl.tools.experiment import experiment_config, experiment_tables, run_experiment
+from beamctl.reports import plots
+from beamctl.simulation.experiment import experiment_config, experiment_tables, run_experiment
 
 
 @pytest.fixture(scope="module")

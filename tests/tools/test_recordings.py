@@ -17,12 +17,12 @@ import yaml
 
 from beamctl.gains.defaults import paper_table_path
 from beamctl.gains.table import load_table
+from beamctl.reports import recordings
 from beamctl.rt.config import controller_config
 from beamctl.rt.controller import FLAG_NAMES, Controller
 from beamctl.rt.loop import ControlLoop
 from beamctl.rt.safety import Fault, State
 from beamctl.rt.telemetry import TelemetryWriter, read_telemetry
-from beamctl.tools import recordings
 from beamctl.tools.cli import main
 from tests.rt.fakes import ScriptedHal
 
@@ -270,7 +270,7 @@ def test_exports_do_not_depend_on_the_chunk_size(recording, exported, tmp_path, 
 PEAK_GROWTH = """
 import sys
 import asammdf, h5py, scipy.io
-from beamctl.tools import recordings
+from beamctl.reports import recordings
 
 def status_kb(key):
     with open("/proc/self/status") as f:

@@ -11,14 +11,14 @@ import pytest
 from beamctl.gains.defaults import paper_table_path
 from beamctl.hal.sim import SimBackend
 from beamctl.models import build_model, load_parameters
+from beamctl.reports import report
 from beamctl.rt.controller import RECORD_COLUMNS, Controller
 from beamctl.rt.loop import ControlLoop
 from beamctl.rt.safety import Fault, State
 from beamctl.rt.telemetry import MAGIC, TelemetryWriter, read_telemetry
-from beamctl.tools import report
+from beamctl.service.setup import build_plant, load_gain_table, plant_geometry, service_config
+from beamctl.simulation.experiment import Deflection
 from beamctl.tools.cli import main
-from beamctl.tools.experiment import Deflection
-from beamctl.tools.service import build_plant, load_gain_table, plant_geometry, service_config
 
 SENSOR_HIGH_N = 1200.0
 SCENARIO = {
@@ -181,7 +181,7 @@ def test_the_figure_over_time_tells_the_six_voltages_apart_with_the_limits(fault
     """Support A and support B in panels of their own, the three stacks of a support each in
     its colour and line style, the 0 and 150 V limits drawn; the state panel names the fault;
     the deflection in mm."""
-    from beamctl.tools import plots
+    from beamctl.reports import plots
 
     run = report.load_run(faulted)
     fig = plots.run_over_time(run)
@@ -221,7 +221,7 @@ def test_a_long_run_s_last_moments_get_a_figure_of_their_own():
     """40 s of a run whose fault comes at 30 s: a second figure over time from 2 s before it."""
     run = _synthetic(100_000, fault_at=75_000)
     figures = report.run_figures(run)
-    from beamctl.tools import plots
+    from beamctl.reports import plots
 
     try:
         assert "run_end.png" in figures
@@ -235,7 +235,7 @@ def test_a_long_run_s_last_moments_get_a_figure_of_their_own():
 def test_a_state_change_missed_by_the_thinning_is_still_drawn():
     """A fault that lasts fewer samples than a figure's point spacing: the state panel is drawn
     from the changes themselves."""
-    from beamctl.tools import plots
+    from beamctl.reports import plots
 
     run = _synthetic(100_000, fault_at=50_001)
     assert run.stride() > 1

@@ -1,4 +1,4 @@
-"""The compiled kernel of offline runs (tools/simkernel.py) runs the same run as the loop.
+"""The compiled kernel of offline runs (simulation/simkernel.py) runs the same run as the loop.
 
 Each test runs one scenario twice, every cycle through ``ControlLoop`` and with the kernel
 taking the uneventful cycles, and compares the runs sample by sample. The kernel's arithmetic
@@ -15,7 +15,13 @@ import pytest
 
 from beamctl.config.schema import ConfigError
 from beamctl.rt.loop import StopRequest
-from beamctl.tools.experiment import check_engine, experiment_config, experiment_tables, run_mode, summarise
+from beamctl.simulation.experiment import (
+    check_engine,
+    experiment_config,
+    experiment_tables,
+    run_mode,
+    summarise,
+)
 
 # the load ramps fast from below the critical load, so a run crosses it within 3 s of plant time:
 # control, saturation at 150 V, the saturation fault, the ramp to bias, the beam let go

@@ -13,8 +13,8 @@ import yaml
 
 from beamctl.config.schema import ConfigError
 from beamctl.gains.defaults import paper_table_path
+from beamctl.simulation.study import draw, study_from_dict, summarise, survival
 from beamctl.tools.cli import main
-from beamctl.tools.study import draw, study_from_dict, summarise, survival
 
 from .processes import DaskCluster
 
@@ -153,7 +153,7 @@ def test_a_worker_killed_mid_study_loses_no_sample(tmp_path):
     """The rows of a worker that died are computed again elsewhere: every sample once."""
     local = DaskCluster(tmp_path)
     try:
-        from beamctl.tools.study import study_from_dict as parse
+        from beamctl.simulation.study import study_from_dict as parse
         from beamctl.tools.study_cmd import run_study
 
         study = parse({"study": {**STUDY["study"], "samples": 8}})
@@ -177,7 +177,7 @@ def test_an_experiment_sample_runs_the_load_ramp_on_its_own_rig():
     """The time-domain kind, one sample: the rig's own beam (E drawn), its stacks, the shipped
     scenario's bow; the controller holds it past the rig's own critical load until the stacks
     run out, and a rig whose parameters give no valid model is a row with the reason."""
-    from beamctl.tools.study import run_task, tasks
+    from beamctl.simulation.study import run_task, tasks
 
     study = study_from_dict({"study": {
         "kind": "experiment", "samples": 1, "seed": 1,
@@ -204,7 +204,7 @@ def test_an_experiment_sample_runs_the_load_ramp_on_its_own_rig():
 def test_a_whole_list_key_scales_every_element():
     """model.damping.ratios as a factor (box B's damping x[0.5, 2]): both ratios scale together,
     which is what keeps the Rayleigh damping positive."""
-    from beamctl.tools.study import run_task, tasks
+    from beamctl.simulation.study import run_task, tasks
 
     factor = {"law": "uniform", "low": 2.0, "high": 2.0 + 1e-9}
     study = study_from_dict({"study": {"kind": "linear", "samples": 1, "seed": 1,
@@ -217,7 +217,7 @@ def test_a_whole_list_key_scales_every_element():
 
 def test_a_worker_needs_no_copy_of_the_design_files(tmp_path):
     """The client sends the tables' contents: a design path the worker cannot read still runs."""
-    from beamctl.tools.study import design_texts, run_task, tasks
+    from beamctl.simulation.study import design_texts, run_task, tasks
 
     study = study_from_dict(STUDY)
     texts = design_texts(study)
@@ -231,7 +231,7 @@ def test_a_worker_needs_no_copy_of_the_design_files(tmp_path):
 def test_a_drawn_list_element_keeps_the_design_s_other_elements():
     """An experiment sample builds its rig from the design's own model (a fitted one, say), not
     from Table 1: drawing damping.ratios[1] leaves the design's ratios[0] as it was."""
-    from beamctl.tools.study import _set_model_value
+    from beamctl.simulation.study import _set_model_value
 
     design = {"damping": {"ratios": [0.0225, 0.00675]}, "beam": {"youngs_modulus": 77.3e9}}
     _set_model_value(design, "damping.ratios[1]", 0.005)
@@ -242,7 +242,7 @@ def test_a_drawn_list_element_keeps_the_design_s_other_elements():
 
 def _linear_row(design: str, youngs_modulus: float) -> dict:
     """The row of a linear sample of ``design`` on Table 1's beam with its E set."""
-    from beamctl.tools.study import run_task, tasks
+    from beamctl.simulation.study import run_task, tasks
 
     e = {"law": "uniform", "low": youngs_modulus, "high": youngs_modulus * (1 + 1e-9)}
     study = study_from_dict({"study": {"kind": "linear", "samples": 1, "seed": 1, "designs": [design],
@@ -322,7 +322,7 @@ def test_a_censored_row_is_never_a_failure_of_the_failure_probability(tmp_path):
     np.testing.assert_allclose(km.at([3399.0, 3400.0, 3700.0, 3999.0, 4000.0]), [0.0, 0.2, 0.4, 0.6, 0.6],
                                err_msg="the estimate is flat from 3800 N to 4000 N")
     assert km.end == 4000.0 and km.censored_at.tolist() == [4000.0, 4000.0]
-    from beamctl.tools import plots
+    from beamctl.reports import plots
 
     paths = plots.study_figures(rows, ["t.yaml"], tmp_path)
     assert [p.read_bytes()[:4] for p in paths] == [b"\x89PNG"] * 2

@@ -10,8 +10,8 @@ import yaml
 from beamctl.config.schema import read_yaml
 from beamctl.gains.defaults import paper_table_path
 from beamctl.gains.table import GainTableError
+from beamctl.simulation.experiment import experiment_config, paper_table
 from beamctl.tools.cli import main
-from beamctl.tools.experiment import experiment_config, paper_table
 
 # the paper's design (integral LQR, 2500 Hz) builds in seconds; the robust check is left out
 PAPER_BUILD = ("gains", "build", "--design", "integral-lqr", "--no-robust")

@@ -27,7 +27,7 @@ import numpy as np
 
 from beamctl.rt.controller import code_labels, column_unit, flag_labels
 from beamctl.rt.telemetry import TelemetryError, TelemetryReader
-from beamctl.tools.extras import require
+from beamctl.common.extras import require
 
 FORMATS = {"mdf": ".mf4", "h5": ".h5", "mat73": ".mat", "mat": ".mat", "csv": ".csv"}
 EXTRA = "recordings"

@@ -4,12 +4,12 @@ A ``Monitor`` binds the UNIX datagram socket the service's ``--live`` sends to (
 keeps the newest ``window_s`` seconds of the current run in a ``LiveStore``, and serves, with
 the standard library's threaded HTTP server:
 
-- ``GET /`` the page (tools/monitor_page.html: one self-contained file, its own drawing on
+- ``GET /`` the page (service/monitor_page.html: one self-contained file, its own drawing on
   canvas, nothing fetched from elsewhere: the lab PC may be offline);
 - ``GET /events`` the rows as server-sent events (JSON, columns of numbers): all of the window
   first, then what is new, at least once a second (a heartbeat with the data's age);
 - ``POST /command`` an operator command (``{"command": "start"|"stop"|"rearm"|"status"|"gains",
-  "table": PATH}``), forwarded to the service's control socket (tools/control.py) and answered
+  "table": PATH}``), forwarded to the service's control socket (service/control.py) and answered
   with the service's reply.
 
 Every request must name the monitor's token, a random string made at each start and printed in
@@ -43,9 +43,9 @@ from pathlib import Path
 import numpy as np
 
 from beamctl.rt.live import LiveError, check_socket_path, decode
-from beamctl.tools import control
-from beamctl.tools.control import COMMANDS, SOCKET_MODE
-from beamctl.tools.live import default_live_path
+from beamctl.service import control
+from beamctl.service.control import COMMANDS, SOCKET_MODE
+from beamctl.service.live import default_live_path
 
 MAX_BODY_BYTES = 4096
 # the columns the page draws or shows (a run without one of them sends the others)
@@ -207,7 +207,7 @@ def forward_command(control_path: str, payload: dict) -> tuple[int, dict]:
 
 def bind_live_socket(path: str) -> socket.socket:
     """The monitor's end of the live view, bound at ``path``. Its directory and its file's mode
-    are the control socket's (tools/control.py: the private directory in /tmp made 0700, the
+    are the control socket's (service/control.py: the private directory in /tmp made 0700, the
     file 0660): who may command the service may feed the page. A socket file left by a monitor
     that was killed is replaced; one that a running monitor holds is refused."""
     path = check_socket_path(path, "--live")
@@ -370,7 +370,7 @@ class Monitor:
         server.store, server.token, server.port = self.store, self.token, self.port
         server.hosts = frozenset({f"127.0.0.1:{self.port}", f"localhost:{self.port}"})
         server.origins = frozenset(f"http://{h}" for h in server.hosts)
-        server.page = resources.files("beamctl.tools").joinpath("monitor_page.html").read_bytes()
+        server.page = resources.files("beamctl.service").joinpath("monitor_page.html").read_bytes()
         server.control_path = str(control_path or control.default_socket_path())
         server.closing = threading.Event()
         self.control_path = server.control_path

@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from beamctl.common.signals import Interrupted
 from beamctl.config.schema import (
     ConfigError,
     boolean,
@@ -56,8 +57,8 @@ from beamctl.rt.config import ALLOCATION_MODES
 from beamctl.rt.controller import Controller
 from beamctl.rt.loop import ControlLoop, StopRequest
 from beamctl.rt.telemetry import TelemetryWriter
-from beamctl.tools import live as live_view
-from beamctl.tools.service import (
+from beamctl.service import live as live_view
+from beamctl.service.setup import (
     ServiceConfig,
     build_plant,
     load_gain_table,
@@ -66,7 +67,6 @@ from beamctl.tools.service import (
     plant_settings,
     service_config,
 )
-from beamctl.tools.signals import Interrupted
 
 MODES = ("uncontrolled", "interpolate", "paper")
 DECIMATE = 10
@@ -245,7 +245,7 @@ ENGINES = ("auto", "loop", "kernel")
 
 def check_engine(engine: str, telemetry: bool = False) -> str:
     """The engine a run will use: ``loop`` (every cycle through ``ControlLoop``) or ``kernel``
-    (tools/simkernel.py runs the cycles in one compiled loop, the loop a fault's ramp and what
+    (simulation/simkernel.py runs the cycles in one compiled loop, the loop a fault's ramp and what
     needs Python). ``auto`` takes the kernel unless telemetry is asked for. Both run the
     engine's compiled cycle."""
     if engine not in ENGINES:
@@ -270,7 +270,7 @@ def run_mode(mode: str, cfg: ServiceConfig, settings: dict, table: GainTable,
     if given, live values to ``beamctl monitor`` at the socket ``live`` if given. ``engine``:
     see ``check_engine`` (a run with telemetry or a live view runs in the loop); both give the
     same run."""
-    from beamctl.tools.simkernel import Accelerator, RunMonitor
+    from beamctl.simulation.simkernel import Accelerator, RunMonitor
 
     engine = check_engine(engine, telemetry_dir is not None or live is not None)
     controller_cfg = replace(cfg.controller, pacing="sample",

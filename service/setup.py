@@ -12,7 +12,7 @@ One YAML file, every section optional, every key checked::
     plant:      the simulated beam: plant settings (models/plant.py) and ``model:``, its own
                 beam parameters when it should differ from the controller's model
     run:        {telemetry: path, duration_s: seconds to run (0: until stopped)}
-    control:    {socket: path of the control socket (default: tools/control.py
+    control:    {socket: path of the control socket (default: service/control.py
                 default_socket_path)}
 """
 
@@ -202,7 +202,7 @@ class TableSwaps:
 
         if self._reader is None or self._reader.poll() is not None:
             self._reader = subprocess.Popen(
-                [sys.executable, "-c", "from beamctl.tools.service import table_reader; table_reader()"],
+                [sys.executable, "-c", "from beamctl.service.setup import table_reader; table_reader()"],
                 stdin=subprocess.PIPE, stdout=subprocess.PIPE)
         try:
             pickle.dump((self.cfg, path), self._reader.stdin)

@@ -27,7 +27,7 @@ Kinds: ``linear`` finds the instability onset, the lowest load at which the disc
 of the sample's rig with the design is unstable (gains/robust.py's ``evaluate``, the full walk from
 the table's first load, the first unstable step bisected to ``resolution_n``); ``experiment`` runs
 the interpolated controller on the sample's simulated rig along the shipped scenario's load ramp
-(tools/experiment.py) and takes the load at which the beam was let go (its deflection passed the
+(simulation/experiment.py) and takes the load at which the beam was let go (its deflection passed the
 limit, after a fault or not).
 
 A sample whose rig never failed (linear: stable to the end of the table; experiment: the ramp
@@ -358,7 +358,7 @@ def _set_model_value(model: dict, key: str, value: float) -> None:
 
 def _experiment(task: Task, table) -> dict[str, Any]:
     from beamctl.config.schema import merge, nested
-    from beamctl.tools.experiment import experiment_config, run_mode
+    from beamctl.simulation.experiment import experiment_config, run_mode
 
     scenario = merge(task.experiment, {"gains": {"table": task.design}, "experiment": {"paper_mode": False},
                                        "hal": {"sim": {"pace": "simulated"}}})

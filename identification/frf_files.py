@@ -69,10 +69,10 @@ from typing import Any
 import numpy as np
 import scipy.io
 
+from beamctl.common.outputs import check_file, replacing
 from beamctl.config.schema import ConfigError
 from beamctl.models.iochain import io_chain
 from beamctl.models.measured import INPUTS, OUTPUTS, FrfData
-from beamctl.tools.outputs import check_file, replacing
 
 FORMAT = "beamctl-frf"
 FORMAT_VERSION = 1
@@ -113,7 +113,7 @@ def write_frf(data: FrfData, path: str | Path) -> list[Path]:
     """Write ``data`` as ``<stem>.npz`` and ``<stem>.mat`` next to each other and return both
     paths (``path`` ends in ``.npz`` or ``.mat``, or has no suffix).
 
-    Each file is replaced whole (``tools/outputs.py``). ``data`` that ``read_frf`` would refuse
+    Each file is replaced whole (``common/outputs.py``). ``data`` that ``read_frf`` would refuse
     is refused with the same ConfigError, so whatever is written reads back; a place that
     cannot be written is refused with OutputPathError, before anything is written.
     """

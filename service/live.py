@@ -5,7 +5,7 @@ hold (the largest lateral deflection along the beam from q, as ``beamctl experim
 measures it).
 
 Where the view's socket is by default (``default_live_path``): ``$BEAMCTL_LIVE_SOCKET``, else
-``live.sock`` beside the service's control socket (tools/control.py: /run/beamctl for the lab's
+``live.sock`` beside the service's control socket (service/control.py: /run/beamctl for the lab's
 service, else $XDG_RUNTIME_DIR/beamctl or /tmp/beamctl-<uid>), so that ``beamctl monitor`` and
 ``beamctl run --live`` find each other with their defaults.
 """
@@ -22,7 +22,7 @@ from beamctl.rt import controller as rec
 from beamctl.rt.controller import Controller
 from beamctl.rt.live import Derived, LivePublisher
 from beamctl.rt.safety import DESCRIPTIONS, Fault, State
-from beamctl.tools.control import default_socket_path
+from beamctl.service.control import default_socket_path
 
 FLAGS = {"saturated_A": rec.FLAG_SATURATED_A, "saturated_B": rec.FLAG_SATURATED_B,
          "integrator_held": rec.FLAG_INTEGRATOR_HELD, "load_out_of_table": rec.FLAG_LOAD_OUT_OF_TABLE,
@@ -47,7 +47,7 @@ def add_live_argument(p: argparse.ArgumentParser) -> None:
 
 def deflection_columns(controller: Controller) -> Derived:
     """The deflection of the controller's model from the records' q."""
-    from beamctl.tools.experiment import Deflection  # here: the experiment publishes through this module
+    from beamctl.simulation.experiment import Deflection  # here: the experiment publishes through this module
 
     deflection = Deflection(build_model(controller.table.model_parameters))
     first = rec.COL["q_1y"]

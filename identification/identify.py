@@ -17,7 +17,7 @@ excitation started ends the run (ramp to bias); nothing is written then.
 
 The inputs are excited one after the other (``supports``: A, B or both: the y and z force of
 each), each for one transient period and ``averages`` periods of a periodic signal
-(tools/excitation.py). Per input j and output i, over the averaged periods (rectangular window,
+(identification/excitation.py). Per input j and output i, over the averaged periods (rectangular window,
 one period a segment: a periodic signal has no leakage):
 
 - open loop, the H1 estimator: H_ij = S_(u_j y_i) / S_(u_j u_j), u_j the force the applied
@@ -37,17 +37,11 @@ from dataclasses import asdict, dataclass, replace
 import numpy as np
 import scipy.signal as sig
 
+from beamctl.common.signals import Interrupted
 from beamctl.config.schema import ConfigError
 from beamctl.gains.table import GainTable
 from beamctl.hal.base import HalError
-from beamctl.models import build_model, critical_load, state_space
-from beamctl.models.measured import FrfData, nan_matrix
-from beamctl.models.plant import LoadRamp
-from beamctl.rt.allocation import geometry as controller_geometry
-from beamctl.rt.controller import I_LOAD, Controller
-from beamctl.rt.loop import ControlLoop, StopRequest
-from beamctl.rt.safety import Fault
-from beamctl.tools.excitation import (
+from beamctl.identification.excitation import (
     SIGNALS,
     SUPPORT_INPUTS,
     excited_lines,
@@ -56,7 +50,14 @@ from beamctl.tools.excitation import (
     periodic_signal,
     voltage_directions,
 )
-from beamctl.tools.service import (
+from beamctl.models import build_model, critical_load, state_space
+from beamctl.models.measured import FrfData, nan_matrix
+from beamctl.models.plant import LoadRamp
+from beamctl.rt.allocation import geometry as controller_geometry
+from beamctl.rt.controller import I_LOAD, Controller
+from beamctl.rt.loop import ControlLoop, StopRequest
+from beamctl.rt.safety import Fault
+from beamctl.service.setup import (
     ServiceConfig,
     build_hal,
     build_plant,
@@ -64,7 +65,6 @@ from beamctl.tools.service import (
     plant_geometry,
     plant_settings,
 )
-from beamctl.tools.signals import Interrupted
 
 # open loop only below this fraction of the controller model's critical load: the beam at bias
 # is then stiff enough that a small excitation stays small

@@ -114,7 +114,7 @@ def load_run(path: str | Path) -> RunRecord:
     """Read a recording and turn it into physical units; a file that is not a recording, or
     holds no sample, is refused (``TelemetryError``, one line)."""
     from beamctl.models import critical_load
-    from beamctl.tools.experiment import Deflection
+    from beamctl.simulation.experiment import Deflection
 
     path = Path(path)
     header, rows = read_telemetry(path)
@@ -232,7 +232,7 @@ def _longest(mask: np.ndarray) -> int:
 
 def figures_of_merit(run: RunRecord) -> dict[str, Any]:
     """What the run achieved and how the loop kept time, SI units except where named."""
-    from beamctl.tools.experiment import direction_at, first_crossing
+    from beamctl.simulation.experiment import direction_at, first_crossing
 
     running = run.state == State.RUNNING
     rate = run.sample_rate_hz
@@ -273,7 +273,7 @@ def figures_of_merit(run: RunRecord) -> dict[str, Any]:
 def run_curves(run: RunRecord, color: str = "tab:blue"):
     """The run as figure 7's curves (plots.RunCurves) until its deflection went off the scale,
     thinned to ``FIGURE_POINTS``; held while controlled and the stacks had room."""
-    from beamctl.tools.plots import OFF_SCALE_M, RunCurves
+    from beamctl.reports.plots import OFF_SCALE_M, RunCurves
 
     lost = np.flatnonzero(run.deflection_m > OFF_SCALE_M)
     end = int(lost[0]) + 1 if lost.size else len(run.time_s)       # one sample off the scale, no more
@@ -298,7 +298,7 @@ def first_event_s(run: RunRecord) -> float | None:
 def run_figures(run: RunRecord) -> dict[str, Any]:
     """The run's figures by file name: over time (and, for a long run, its last moments from
     just before its first saturation or fault), figure 7a where the load moved, and 7b."""
-    from beamctl.tools import plots
+    from beamctl.reports import plots
 
     figures = {"run_over_time.png": plots.run_over_time(run)}
     event = first_event_s(run)
@@ -433,8 +433,8 @@ def write_report(path: str | Path, out: str | Path,
     """Read the recording ``path`` and write its page to ``out`` (whole or not at all); return
     the page's path and the figures of merit. ``warn`` is told what ``warnings`` finds (the
     page states it too)."""
-    from beamctl.tools.outputs import replacing
-    from beamctl.tools.plots import png_bytes
+    from beamctl.common.outputs import replacing
+    from beamctl.reports.plots import png_bytes
 
     run = load_run(path)
     for text in warnings(run):

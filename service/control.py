@@ -13,7 +13,7 @@ at most 64 KiB)::
 ``status`` holds the state, the fault and its reason, whether the stacks are at bias, the
 load-cell reading in N, the cycles run, and the gain table's path and SHA-256. A command is
 answered once the loop has decided it (within a few cycles); ``gains`` once the table has
-also been read and checked, which takes seconds the first time (tools/service.py
+also been read and checked, which takes seconds the first time (service/setup.py
 ``TableSwaps``): a client allows it two minutes. A request that cannot be read (not UTF-8,
 not JSON, too long, an unknown command, nothing within the read time-out) is answered
 ``ok: false`` saying why, and the server goes on serving.
@@ -272,7 +272,7 @@ class ControlServer:
     nothing but its deadline) and answers status and unreadable requests itself; a second
     thread takes the commands one at a time: it loads a gain table, posts the command to the
     loop and waits for the outcome. ``prepare_table(path)`` loads and checks a gain table for
-    the running service and returns it prepared for the controller (tools/service.py
+    the running service and returns it prepared for the controller (service/setup.py
     ``table_for_swap``), raising ValueError (a ConfigError) with why it was refused; ``log``
     takes one line per command and its outcome, and per refused request.
     """

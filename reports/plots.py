@@ -15,10 +15,10 @@ from beamctl.models import critical_load, eigenfrequencies, fe_frequency_respons
 from beamctl.models.fe import FEModel
 from beamctl.models.measured import FrfData, resonances
 from beamctl.models.modal import ModalModel
-from beamctl.tools.outputs import replacing
+from beamctl.common.outputs import replacing
 
 if TYPE_CHECKING:
-    from beamctl.tools.report import RunRecord
+    from beamctl.reports.report import RunRecord
 
 # the figures of ``beamctl experiment``'s report
 FIG7A, FIG7B, VOLTAGES = "fig7a_deflection_vs_load.png", "fig7b_path_yz.png", "voltages_vs_load.png"
@@ -285,7 +285,7 @@ HELD_PERCENTILE = 98.0
 
 def failure(run: RunCurves, at_m: float = FAILURE_DEFLECTION_M) -> Failure | None:
     """The direction and load where ``run``'s deflection first passed ``at_m``, else at its end."""
-    from beamctl.tools.experiment import direction_at
+    from beamctl.simulation.experiment import direction_at
 
     d = run.deflection_m
     if not d.size:
@@ -632,7 +632,7 @@ def study_figures(rows: Sequence[dict], designs: Sequence[str], out_dir: Path,
     of failure versus axial load. A censored sample (it never failed: a lower bound) is never
     drawn as a failure: it is counted in the legends and marked '+' on the curves, which end at
     the largest value observed."""
-    from beamctl.tools.study import survival
+    from beamctl.simulation.study import survival
 
     what, failed = _STUDY_FAILURE[kind]
     plt = _pyplot()
