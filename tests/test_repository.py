@@ -7,6 +7,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 TEST_COMMAND = "pip install -e '.[test]' && pytest"
 FOLDERS = ("config", "models", "gains", "rt", "hal", "common", "simulation", "identification", "service", "reports",
+           "bench",
            "tools")
 
 
