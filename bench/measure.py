@@ -30,13 +30,12 @@ from beamctl.common.signals import Interrupted, stop_on_signals
 from beamctl.gains.build import build_table
 from beamctl.gains.defaults import default_table_path
 from beamctl.gains.table import load_table
+from beamctl.hal import create as create_backend
 from beamctl.hal.base import Sample
 from beamctl.hal.budget import LIMIT as BUS_LIMIT
 from beamctl.hal.budget import bus_budget
-from beamctl.hal.can_backend import CanBackend
 from beamctl.hal.config import hal_config
 from beamctl.hal.dbc import Contract
-from beamctl.hal.sim import SimBackend
 from beamctl.models import build_model
 from beamctl.models.plant import Plant, clear_discretisations, plant_config
 from beamctl.rt import engine, realtime
@@ -196,7 +195,7 @@ def _timer_run(cycles: int, what: str, telemetry: Path | None = None, live: str 
         publisher = live_view.live_publisher(live, controller, f"beamctl bench: {what}")
     if telemetry is not None:
         writer = TelemetryWriter.for_controller(telemetry, controller, live=publisher)
-    hal = SimBackend(plant, geometry(config.actuators)).open()
+    hal = create_backend("sim", plant=plant, geometry=geometry(config.actuators)).open()
     try:
         if writer is not None:
             writer.start()
@@ -323,8 +322,9 @@ def can_latency(samples: int = 10_000, load_n: float = 2000.0) -> dict:
     use_fd = bus_budget(Contract(), rate, 1e6).load > BUS_LIMIT
 
     spin_s = hal_config({}).can["spin_s"]           # the service's default
-    backend = CanBackend(rate, interface, channel, rate_tolerance=0.0, fd=use_fd, spin_s=spin_s,
-                         data_bitrate_bit_s=4e6 if use_fd else None)
+    backend = create_backend("can", sample_rate_hz=rate, interface=interface, channel=channel,
+                             rate_tolerance=0.0, fd=use_fd, spin_s=spin_s,
+                             data_bitrate_bit_s=4e6 if use_fd else None)
     controller = Controller(table, config)
     ages = np.full(samples, np.nan)
     answered = 0

@@ -7,10 +7,8 @@ import contextlib
 import signal
 import threading
 from collections.abc import Iterator
-from typing import TYPE_CHECKING
 
-if TYPE_CHECKING:           # the command line imports this module before numpy: the loop later
-    from beamctl.rt.loop import StopRequest
+from beamctl.rt.stop import StopRequest  # numpy-free: the command line imports this module early
 
 
 class Interrupted(Exception):
@@ -32,8 +30,6 @@ def stop_on_signals(*signals: signal.Signals) -> Iterator[StopRequest]:
     reads (the stacks ramp to bias, the run ends normally and names the signal); the previous
     handlers come back after it. A command's choice: library code installs no handler. Off the
     main thread (where Python allows no handler) the request is only set by its holder."""
-    from beamctl.rt.loop import StopRequest
-
     request = StopRequest()
 
     def handler(signum, _frame) -> None:

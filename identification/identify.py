@@ -62,7 +62,6 @@ from beamctl.service.setup import (
     build_hal,
     build_plant,
     check_voltage_range,
-    plant_geometry,
     plant_settings,
 )
 
@@ -201,14 +200,12 @@ def record(cfg: ServiceConfig, table: GainTable, s: IdentifySettings, progress=N
     excitation, reference, inputs, period, periods, transient = excitation_plan(s, cfg, rate)
     n = len(excitation)
     if cfg.hal.backend == "sim":
-        from beamctl.hal.sim import SimBackend
-
         start = s.load_n
         if s.closed_loop:
             start = min(s.load_n, CLOSED_LOOP_START_FRACTION * critical_load(build_model(cfg.model)))
         load = {"start": start, "end": s.load_n, "rate": SIM_LOAD_RATE_N_PER_S, "hold": 0.0}
         sim_plant = build_plant(cfg, table, {"load": load})
-        hal = SimBackend(sim_plant, plant_geometry(cfg), pace=cfg.hal.sim["pace"])
+        hal = build_hal(cfg, table, sim_plant)
     else:
         sim_plant = None
         try:

@@ -21,7 +21,44 @@ from beamctl.config.schema import (
     refuse_renamed,
     validate,
 )
-from beamctl.rt.telemetry import MAX_PRE_TRIGGER_S, RECORDING_MODES, Recording
+
+RECORDING_MODES = ("full", "decimated", "triggered")
+MAX_PRE_TRIGGER_S = 60.0     # the pre-trigger history is held in memory (2 MB/s at 6 kHz)
+
+
+@dataclass(frozen=True)
+class Recording:
+    """Which samples a recording keeps (the writer thread selects them)."""
+
+    mode: str = "full"
+    decimation: int = 10            # decimated: every decimation-th sample (and every event)
+    pre_trigger_s: float = 1.0      # triggered: kept before each trigger...
+    post_trigger_s: float = 2.0     # ...and after it
+
+    def __post_init__(self) -> None:
+        if self.mode not in RECORDING_MODES:
+            raise ValueError(f"recording mode must be one of {RECORDING_MODES}, got {self.mode!r}")
+        if self.decimation < 1:
+            raise ValueError(f"decimation must be >= 1, got {self.decimation}")
+        if not 0.0 <= self.pre_trigger_s <= MAX_PRE_TRIGGER_S or not self.post_trigger_s >= 0.0:
+            raise ValueError(f"pre_trigger_s must be in [0, {MAX_PRE_TRIGGER_S:g}] s and post_trigger_s "
+                             f">= 0 s, got {self.pre_trigger_s} and {self.post_trigger_s}")
+
+    def window_samples(self, sample_rate_hz: float) -> tuple[int, int]:
+        """(samples kept before a trigger, samples kept after it)."""
+        return round(self.pre_trigger_s * sample_rate_hz), round(self.post_trigger_s * sample_rate_hz)
+
+    def header(self, sample_rate_hz: float | None) -> dict:
+        """What a reader needs to know of the selection (the header's ``recording``)."""
+        if self.mode == "decimated":
+            return {"mode": "decimated", "decimation": self.decimation}
+        if self.mode == "triggered":
+            pre, post = self.window_samples(sample_rate_hz)
+            return {"mode": "triggered", "pre_trigger_s": self.pre_trigger_s,
+                    "post_trigger_s": self.post_trigger_s, "pre_trigger_samples": pre,
+                    "post_trigger_samples": post}
+        return {"mode": "full"}
+
 
 MAX_AMPLIFIER_VOLTAGE_V = 150.0
 # the allocation's modes (rt/allocation.py, which imports this module: the names live here)

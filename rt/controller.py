@@ -66,45 +66,12 @@ from beamctl.rt.engine import (  # noqa: F401 (the record's layout, re-exported 
     RECORD_COLUMNS,
     SIGNAL_COLUMNS,
 )
+from beamctl.rt.record import TRIGGER_FLAGS, code_labels, column_unit, flag_labels  # noqa: F401 (re-exported)
 from beamctl.rt.safety import Fault, Safety, State, TransitionError
-
-# the flags that start a triggered recording's window (with any change of a coded column)
-TRIGGER_FLAGS = FLAG_SATURATED_A | FLAG_SATURATED_B
 
 # Without a ride-through analysis in the table (a file written before tables carried one), the
 # limits the controller had before: 5 samples missing, 10 late answers, half a period.
 LEGACY_GAP_LIMIT, LEGACY_LATE_LIMIT, LEGACY_BUDGET_PERIODS = 5, 10, 0.5
-
-# Units of the columns whose names do not end in one (``load_N``, ``voltage_a1_V``, ``step_us``,
-# ``time_s`` do): strains are m/m, the modal coordinates of the mass-normalised modes (eq. 15)
-# m sqrt(kg), their integrals m sqrt(kg) s. Codes, counts and fractions have none.
-_UNIT_SUFFIXES = {"_N": "N", "_V": "V", "_us": "us", "_s": "s"}
-_UNIT_PREFIXES = {"strain_": "m/m", "q_": "m*sqrt(kg)", "xi_": "m*sqrt(kg)*s"}
-
-
-def code_labels() -> dict[str, dict[int, str]]:
-    """The record's coded columns and the label of each code: {column: {code: label}}."""
-    from beamctl.rt.loop import operator_labels  # the loop defines the operator's commands
-
-    return {"state": {int(s): s.name for s in State}, "fault": {int(f): f.name for f in Fault},
-            "operator_command": operator_labels()}
-
-
-def flag_labels() -> dict[str, dict[int, str]]:
-    """The record's bit-field columns and the label of each bit: {column: {bit: label}}."""
-    return {"flags": dict(FLAG_NAMES)}
-
-
-def column_unit(column: str) -> str:
-    """The unit of a record column ("" for codes, counts and fractions)."""
-    for prefix, unit in _UNIT_PREFIXES.items():
-        if column.startswith(prefix):
-            return unit
-    for suffix, unit in _UNIT_SUFFIXES.items():
-        if column.endswith(suffix):
-            return unit
-    return ""
-
 
 @dataclass(frozen=True)
 class PreparedTable:

@@ -63,46 +63,11 @@ from beamctl.rt.controller import (
     Controller,
     PreparedTable,
 )
+from beamctl.rt.record import OPERATOR_COMMANDS, operator_code, operator_labels  # noqa: F401 (re-exported)
 from beamctl.rt.safety import Fault, State
+from beamctl.rt.stop import StopRequest
 from beamctl.rt.telemetry import TelemetryWriter
 from beamctl.rt.timing import LoopTiming
-
-
-class StopRequest:
-    """A stop asked from outside the loop: a signal handler or another thread sets it once
-    (the first reason wins), the loop reads it each cycle."""
-
-    __slots__ = ("reason", "signal_name")
-
-    def __init__(self) -> None:
-        self.reason = ""
-        self.signal_name = ""
-
-    def set(self, reason: str, signal_name: str = "") -> None:
-        if signal_name and not self.signal_name:
-            self.signal_name = signal_name
-        if not self.reason:
-            self.reason = reason
-
-
-# the commands an operator gives the loop; in the telemetry's operator_command column the i-th
-# is 2 i + 1 when carried out and 2 i + 2 when refused (0: no command at that sample)
-OPERATOR_COMMANDS = ("start", "stop", "rearm", "gains")
-
-
-def operator_code(command: str, carried_out: bool) -> int:
-    """The ``operator_command`` code of ``command`` carried out or refused."""
-    return 2 * OPERATOR_COMMANDS.index(command) + (1 if carried_out else 2)
-
-
-def operator_labels() -> dict[int, str]:
-    """{code: label} of the telemetry's ``operator_command`` column: 0 "none", 1 "start",
-    2 "start refused", 3 "stop", ..."""
-    labels = {0: "none"}
-    for name in OPERATOR_COMMANDS:
-        labels[operator_code(name, True)] = name
-        labels[operator_code(name, False)] = f"{name} refused"
-    return labels
 
 
 class OperatorCommand:
@@ -324,7 +289,12 @@ class ControlLoop:
             command._decide(f"the control loop ended ({self.controller.state.name}) before carrying it out")
 
     # -- the loop ---------------------------------------------------------------------------------
-    def run(self, require_rt: bool = False, acquire_rt: bool = True) -> RunResult:
+    def run(self, require_rt: bool = False, acquire_rt: bool = False) -> RunResult:
+        """Open the HAL, arm (and start unless held) and cycle until done; the ramp to bias on
+        any way out. ``acquire_rt``: take the controller config's real-time set-up first
+        (SCHED_FIFO, affinity, locked memory, the collector frozen) and release it after; the
+        service asks for it (service/run.py), offline runs and tests do not. ``require_rt``: refuse
+        to run without it."""
         rt_report = {}
         try:
             if acquire_rt:

@@ -34,54 +34,26 @@ import os
 import struct
 import threading
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from beamctl.rt.config import MAX_PRE_TRIGGER_S, RECORDING_MODES, Recording  # noqa: F401 (re-exported)
 from beamctl.rt.live import LivePublisher
+from beamctl.rt.record import (
+    RECORD_COLUMNS,
+    TRIGGER_FLAGS,
+    code_labels,
+    column_unit,
+    controller_meta,
+    flag_labels,
+)
 
 MAGIC = b"BEAMCTL-TELEMETRY 1\n"
-RECORDING_MODES = ("full", "decimated", "triggered")
-MAX_PRE_TRIGGER_S = 60.0     # the pre-trigger history is held in memory (2 MB/s at 6 kHz)
 
 
 class TelemetryError(ValueError):
     """A telemetry file could not be read."""
-
-
-@dataclass(frozen=True)
-class Recording:
-    """Which samples a recording keeps (the writer thread selects them)."""
-
-    mode: str = "full"
-    decimation: int = 10            # decimated: every decimation-th sample (and every event)
-    pre_trigger_s: float = 1.0      # triggered: kept before each trigger...
-    post_trigger_s: float = 2.0     # ...and after it
-
-    def __post_init__(self) -> None:
-        if self.mode not in RECORDING_MODES:
-            raise ValueError(f"recording mode must be one of {RECORDING_MODES}, got {self.mode!r}")
-        if self.decimation < 1:
-            raise ValueError(f"decimation must be >= 1, got {self.decimation}")
-        if not 0.0 <= self.pre_trigger_s <= MAX_PRE_TRIGGER_S or not self.post_trigger_s >= 0.0:
-            raise ValueError(f"pre_trigger_s must be in [0, {MAX_PRE_TRIGGER_S:g}] s and post_trigger_s "
-                             f">= 0 s, got {self.pre_trigger_s} and {self.post_trigger_s}")
-
-    def window_samples(self, sample_rate_hz: float) -> tuple[int, int]:
-        """(samples kept before a trigger, samples kept after it)."""
-        return round(self.pre_trigger_s * sample_rate_hz), round(self.post_trigger_s * sample_rate_hz)
-
-    def header(self, sample_rate_hz: float | None) -> dict:
-        """What a reader needs to know of the selection (the header's ``recording``)."""
-        if self.mode == "decimated":
-            return {"mode": "decimated", "decimation": self.decimation}
-        if self.mode == "triggered":
-            pre, post = self.window_samples(sample_rate_hz)
-            return {"mode": "triggered", "pre_trigger_s": self.pre_trigger_s,
-                    "post_trigger_s": self.post_trigger_s, "pre_trigger_samples": pre,
-                    "post_trigger_samples": post}
-        return {"mode": "full"}
 
 
 class _Events:
@@ -245,8 +217,6 @@ class TelemetryWriter:
         the record's units, code labels and flag bits, the sample rate and the gain table's
         SHA-256 (``meta["gain_table_sha256"]``) in the header; the header's meta holds what a
         reader needs to interpret the run (``controller_meta``) under the caller's ``meta``."""
-        from beamctl.rt.controller import RECORD_COLUMNS, TRIGGER_FLAGS, code_labels, column_unit, flag_labels
-
         settings = controller.config.telemetry
         return cls(path, RECORD_COLUMNS, capacity=int(settings.buffer_time_s * controller.sample_rate_hz),
                    flush_interval_s=settings.flush_interval_s,
@@ -414,22 +384,6 @@ class TelemetryReader:
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-
-def controller_meta(controller) -> dict:
-    """The settings a recording is read with: the sample rate, the controller's settings
-    (allocation, actuators, safety limits), the gain table's design and its model's parameters
-    (a reader turns modal displacements into millimetres with them)."""
-    from beamctl.rt.config import settings_by_key
-
-    table = controller.table
-    design = table.design
-    return {"sample_rate_hz": controller.sample_rate_hz,
-            "controller": settings_by_key(controller.config),
-            "design": {"kind": design.kind, "sample_rate_hz": design.sample_rate_hz,
-                       "schedule": table.schedule.mode, "loads_n": [float(table.loads_n[0]),
-                                                                     float(table.loads_n[-1])]},
-            "model": table.model_parameters.to_dict()}
 
 
 def read_telemetry(path: str | Path) -> tuple[dict, np.ndarray]:

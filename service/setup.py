@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from beamctl import hal
 from beamctl.config.schema import ConfigError, merge, nonnegative, path, read_yaml, refuse_renamed, validate
 from beamctl.gains.defaults import default_table_path
 from beamctl.gains.table import GainTable, GainTableError, load_table
@@ -294,16 +295,14 @@ def build_plant(cfg: ServiceConfig, table: GainTable, overrides: dict[str, Any] 
 
 
 def build_hal(cfg: ServiceConfig, table: GainTable, plant: Plant | None = None) -> HalBase:
-    """The configured backend (not yet open). The sim backend gets ``plant`` (or builds one)."""
+    """The configured backend (not yet open), built by the HAL's factory (``hal.create``). The
+    sim backend gets ``plant`` (or builds one)."""
     if cfg.hal.backend == "sim":
-        from beamctl.hal.sim import SimBackend
-
-        return SimBackend(plant or build_plant(cfg, table), plant_geometry(cfg), pace=cfg.hal.sim["pace"])
-    from beamctl.hal.can_backend import CanBackend
-
+        return hal.create("sim", plant=plant or build_plant(cfg, table), geometry=plant_geometry(cfg),
+                          pace=cfg.hal.sim["pace"])
     c = cfg.hal.can
-    return CanBackend(table.design.sample_rate_hz, c["interface"], c["channel"],
-                      bitrate_bit_s=c["bitrate_bit_s"], fd=c["fd"],
+    return hal.create("can", sample_rate_hz=table.design.sample_rate_hz, interface=c["interface"],
+                      channel=c["channel"], bitrate_bit_s=c["bitrate_bit_s"], fd=c["fd"],
                       data_bitrate_bit_s=c["data_bitrate_bit_s"], dbc=c["dbc"] or None,
                       record=c["record"] or None, rate_tolerance=c["rate_tolerance"], spin_s=c["spin_s"])
 

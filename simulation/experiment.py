@@ -49,7 +49,7 @@ from beamctl.config.schema import (
 )
 from beamctl.gains.build import build_table
 from beamctl.gains.table import GainTable, require_checked
-from beamctl.hal.sim import SimBackend
+from beamctl.hal import create as create_backend
 from beamctl.models import build_model, critical_load, reduce
 from beamctl.models.analysis import lateral_displacements
 from beamctl.models.plant import plant_config
@@ -277,7 +277,7 @@ def run_mode(mode: str, cfg: ServiceConfig, settings: dict, table: GainTable,
                              anti_windup=cfg.controller.anti_windup if mode == "interpolate" else False,
                              allocation=run_allocation(mode, cfg, settings))
     plant = build_plant(cfg, table)
-    hal = SimBackend(plant, plant_geometry(cfg), pace="simulated")
+    hal = create_backend("sim", plant=plant, geometry=plant_geometry(cfg), pace="simulated")
     controller = Controller(table, controller_cfg)
     monitor = RunMonitor(controller, plant, Deflection(build_model(cfg.model)), settings["deflection_limit"],
                          plant.config.load.duration(), decimate=DECIMATE, progress=progress, label=mode)

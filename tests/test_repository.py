@@ -6,9 +6,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 TEST_COMMAND = "pip install -e '.[test]' && pytest"
-FOLDERS = ("config", "models", "gains", "rt", "hal", "common", "simulation", "identification", "service", "reports",
-           "bench",
-           "tools")
+FOLDERS = ("config", "models", "gains", "rt", "hal", "common", "simulation", "identification", "service",
+           "reports", "bench", "tools")
 
 
 def test_ci_runs_exactly_the_readme_test_command():
