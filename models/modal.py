@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from beamctl.config.schema import ConfigError
-from beamctl.models.analysis import PLANE_IO, critical_load, frequency_response
+from beamctl.models.analysis import PLANE_IO, critical_load, frequency_response, lateral_displacements
 from beamctl.models.fe import PLANE_DOFS, FEModel, dof, plane_eigen
 
 MODES_PER_PLANE = 2
@@ -126,3 +126,40 @@ def reduce(model: FEModel, reference_load: float | None = None) -> ModalModel:
     return ModalModel(reference_load=load, phi=phi, stiffness_elastic=k_e, stiffness_geometric=k_g,
                       damping=d, input_matrix=b_m, output_matrix=c_m, c0_phi=c0_phi,
                       c0_phi_inv=np.linalg.inv(c0_phi), condition_number=cond)
+
+
+class Deflection:
+    """Largest lateral deflection along the beam from modal displacements (Phi q)."""
+
+    def __init__(self, model) -> None:
+        phi = reduce(model).phi
+        lat = np.stack([lateral_displacements(model, phi[:, j]) for j in range(4)], axis=-1)
+        self._vy, self._vz = lat[:, 0, :], lat[:, 1, :]       # [n_beam x 4]
+        self._y = np.zeros(len(self._vy))
+        self._z = np.zeros(len(self._vz))
+
+    def __call__(self, q: np.ndarray) -> tuple[float, float, float]:
+        """(|w|, w_y, w_z) in m at the point of largest magnitude, of one q."""
+        np.dot(self._vy, q, out=self._y)
+        np.dot(self._vz, q, out=self._z)
+        mag = np.hypot(self._y, self._z)
+        k = int(np.argmax(mag))
+        return float(mag[k]), float(self._y[k]), float(self._z[k])
+
+    def many(self, q: np.ndarray) -> np.ndarray:
+        """[m x 3] for q [m x 4]: the largest magnitude (m) and its y and z components."""
+        return np.column_stack(self.series(q))
+
+    def series(self, q: np.ndarray, chunk: int = 20_000) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(|w|, w_y, w_z) in m of every row of ``q`` [n x 4], as ``__call__`` gives them one by
+        one (``chunk`` rows at a time: a long recording never builds its whole [n x nodes] field)."""
+        q = np.asarray(q, dtype=float)
+        out = np.empty((3, len(q)))
+        for start in range(0, len(q), chunk):
+            block = q[start:start + chunk]
+            y, z = block @ self._vy.T, block @ self._vz.T
+            mag = np.hypot(y, z)
+            k = np.argmax(mag, axis=1)
+            rows = np.arange(len(block))
+            out[:, start:start + len(block)] = mag[rows, k], y[rows, k], z[rows, k]
+        return out[0], out[1], out[2]

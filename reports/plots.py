@@ -16,6 +16,10 @@ from beamctl.models.fe import FEModel
 from beamctl.models.measured import FrfData, resonances
 from beamctl.models.modal import ModalModel
 from beamctl.common.outputs import replacing
+from beamctl.models import build_model, critical_load
+from beamctl.rt.safety import Fault, State
+from beamctl.simulation.experiment import direction_at
+from beamctl.simulation.study import survival
 
 if TYPE_CHECKING:
     from beamctl.reports.report import RunRecord
@@ -215,7 +219,6 @@ def gains_figure(table):
     axes[0].set_ylabel(ylabel)
     fcr = None
     try:
-        from beamctl.models import build_model, critical_load
 
         fcr = critical_load(build_model(table.model_parameters))
     except ConfigError:
@@ -285,7 +288,6 @@ HELD_PERCENTILE = 98.0
 
 def failure(run: RunCurves, at_m: float = FAILURE_DEFLECTION_M) -> Failure | None:
     """The direction and load where ``run``'s deflection first passed ``at_m``, else at its end."""
-    from beamctl.simulation.experiment import direction_at
 
     d = run.deflection_m
     if not d.size:
@@ -531,7 +533,6 @@ def run_over_time(run: RunRecord, part: str = ""):
     voltages of support A and of support B (three stacks each, told apart by colour and line
     style, the limits and the bias drawn, saturated stretches shaded) and the supervisor's state
     with its faults (the figure, not saved). ``part`` names a window of the run in the title."""
-    from beamctl.rt.safety import Fault, State
 
     plt = _pyplot()
     k = run.stride()
@@ -632,7 +633,6 @@ def study_figures(rows: Sequence[dict], designs: Sequence[str], out_dir: Path,
     of failure versus axial load. A censored sample (it never failed: a lower bound) is never
     drawn as a failure: it is counted in the legends and marked '+' on the curves, which end at
     the largest value observed."""
-    from beamctl.simulation.study import survival
 
     what, failed = _STUDY_FAILURE[kind]
     plt = _pyplot()

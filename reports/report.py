@@ -23,9 +23,19 @@ from typing import Any
 
 import numpy as np
 
+from beamctl.models.modal import Deflection
 from beamctl.rt.controller import FLAG_NO_NEW_SAMPLE, FLAG_SATURATED_A, FLAG_SATURATED_B
 from beamctl.rt.safety import DESCRIPTIONS, Fault, State
 from beamctl.rt.telemetry import TelemetryError, read_telemetry
+from beamctl.common.outputs import replacing
+from beamctl.config.schema import ConfigError
+from beamctl.models import build_model, load_parameters
+from beamctl.models import critical_load
+from beamctl.models.params import parameters_from_dict
+from beamctl.reports import plots
+from beamctl.reports.plots import OFF_SCALE_M, RunCurves
+from beamctl.reports.plots import png_bytes
+from beamctl.simulation.experiment import direction_at, first_crossing
 
 FAILURE_DEFLECTION_M = 1.0e-3         # the paper's larger admissible deflection (section 4)
 FIGURE_POINTS = 20_000                # at most this many points a curve in a figure
@@ -98,9 +108,6 @@ class RunRecord:
 
 def _model(meta: dict):
     """(model, note): the recording's model, else the paper's Table 1 (noted)."""
-    from beamctl.config.schema import ConfigError
-    from beamctl.models import build_model, load_parameters
-    from beamctl.models.params import parameters_from_dict
 
     if isinstance(meta.get("model"), dict):
         try:
@@ -113,8 +120,6 @@ def _model(meta: dict):
 def load_run(path: str | Path) -> RunRecord:
     """Read a recording and turn it into physical units; a file that is not a recording, or
     holds no sample, is refused (``TelemetryError``, one line)."""
-    from beamctl.models import critical_load
-    from beamctl.simulation.experiment import Deflection
 
     path = Path(path)
     header, rows = read_telemetry(path)
@@ -232,7 +237,6 @@ def _longest(mask: np.ndarray) -> int:
 
 def figures_of_merit(run: RunRecord) -> dict[str, Any]:
     """What the run achieved and how the loop kept time, SI units except where named."""
-    from beamctl.simulation.experiment import direction_at, first_crossing
 
     running = run.state == State.RUNNING
     rate = run.sample_rate_hz
@@ -273,7 +277,6 @@ def figures_of_merit(run: RunRecord) -> dict[str, Any]:
 def run_curves(run: RunRecord, color: str = "tab:blue"):
     """The run as figure 7's curves (plots.RunCurves) until its deflection went off the scale,
     thinned to ``FIGURE_POINTS``; held while controlled and the stacks had room."""
-    from beamctl.reports.plots import OFF_SCALE_M, RunCurves
 
     lost = np.flatnonzero(run.deflection_m > OFF_SCALE_M)
     end = int(lost[0]) + 1 if lost.size else len(run.time_s)       # one sample off the scale, no more
@@ -298,7 +301,6 @@ def first_event_s(run: RunRecord) -> float | None:
 def run_figures(run: RunRecord) -> dict[str, Any]:
     """The run's figures by file name: over time (and, for a long run, its last moments from
     just before its first saturation or fault), figure 7a where the load moved, and 7b."""
-    from beamctl.reports import plots
 
     figures = {"run_over_time.png": plots.run_over_time(run)}
     event = first_event_s(run)
@@ -433,8 +435,6 @@ def write_report(path: str | Path, out: str | Path,
     """Read the recording ``path`` and write its page to ``out`` (whole or not at all); return
     the page's path and the figures of merit. ``warn`` is told what ``warnings`` finds (the
     page states it too)."""
-    from beamctl.common.outputs import replacing
-    from beamctl.reports.plots import png_bytes
 
     run = load_run(path)
     for text in warnings(run):

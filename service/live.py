@@ -18,6 +18,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from beamctl.models import build_model, critical_load
+from beamctl.models.modal import Deflection
 from beamctl.rt import controller as rec
 from beamctl.rt.controller import Controller
 from beamctl.rt.live import Derived, LivePublisher
@@ -47,8 +48,6 @@ def add_live_argument(p: argparse.ArgumentParser) -> None:
 
 def deflection_columns(controller: Controller) -> Derived:
     """The deflection of the controller's model from the records' q."""
-    from beamctl.simulation.experiment import Deflection  # here: the experiment publishes through this module
-
     deflection = Deflection(build_model(controller.table.model_parameters))
     first = rec.COL["q_1y"]
     return Derived(DEFLECTION_COLUMNS, lambda rows: deflection.many(rows[:, first:first + 4]))

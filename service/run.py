@@ -29,7 +29,8 @@ from beamctl.rt.controller import Controller
 from beamctl.rt.loop import ControlLoop, RunResult, StopRequest
 from beamctl.rt.telemetry import TelemetryWriter
 from beamctl.service import live as live_view
-from beamctl.service.control import ControlError, ControlServer, default_socket_path
+from beamctl.service.control import ControlError, default_socket_path
+from beamctl.service.control_server import ControlServer
 from beamctl.service.sdnotify import Notifier
 from beamctl.service.setup import ServiceConfig, TableSwaps, build_hal, check_voltage_range, load_gain_table
 

@@ -50,8 +50,8 @@ from beamctl.config.schema import (
 from beamctl.gains.build import build_table
 from beamctl.gains.table import GainTable, require_checked
 from beamctl.hal import create as create_backend
-from beamctl.models import build_model, critical_load, reduce
-from beamctl.models.analysis import lateral_displacements
+from beamctl.models import build_model, critical_load
+from beamctl.models.modal import Deflection
 from beamctl.models.plant import plant_config
 from beamctl.rt.config import ALLOCATION_MODES
 from beamctl.rt.controller import Controller
@@ -67,6 +67,7 @@ from beamctl.service.setup import (
     plant_settings,
     service_config,
 )
+from beamctl.simulation.simkernel import Accelerator, RunMonitor
 
 MODES = ("uncontrolled", "interpolate", "paper")
 DECIMATE = 10
@@ -134,43 +135,6 @@ def experiment_config(data: dict | None = None, source: str = "") -> tuple[Servi
 
 def load_experiment_config(path: str | Path | None) -> tuple[ServiceConfig, dict]:
     return experiment_config(read_yaml(path) if path else {}, str(path) if path else "defaults")
-
-
-class Deflection:
-    """Largest lateral deflection along the beam from modal displacements (Phi q)."""
-
-    def __init__(self, model) -> None:
-        phi = reduce(model).phi
-        lat = np.stack([lateral_displacements(model, phi[:, j]) for j in range(4)], axis=-1)
-        self._vy, self._vz = lat[:, 0, :], lat[:, 1, :]       # [n_beam x 4]
-        self._y = np.zeros(len(self._vy))
-        self._z = np.zeros(len(self._vz))
-
-    def __call__(self, q: np.ndarray) -> tuple[float, float, float]:
-        """(|w|, w_y, w_z) in m at the point of largest magnitude, of one q."""
-        np.dot(self._vy, q, out=self._y)
-        np.dot(self._vz, q, out=self._z)
-        mag = np.hypot(self._y, self._z)
-        k = int(np.argmax(mag))
-        return float(mag[k]), float(self._y[k]), float(self._z[k])
-
-    def many(self, q: np.ndarray) -> np.ndarray:
-        """[m x 3] for q [m x 4]: the largest magnitude (m) and its y and z components."""
-        return np.column_stack(self.series(q))
-
-    def series(self, q: np.ndarray, chunk: int = 20_000) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(|w|, w_y, w_z) in m of every row of ``q`` [n x 4], as ``__call__`` gives them one by
-        one (``chunk`` rows at a time: a long recording never builds its whole [n x nodes] field)."""
-        q = np.asarray(q, dtype=float)
-        out = np.empty((3, len(q)))
-        for start in range(0, len(q), chunk):
-            block = q[start:start + chunk]
-            y, z = block @ self._vy.T, block @ self._vz.T
-            mag = np.hypot(y, z)
-            k = np.argmax(mag, axis=1)
-            rows = np.arange(len(block))
-            out[:, start:start + len(block)] = mag[rows, k], y[rows, k], z[rows, k]
-        return out[0], out[1], out[2]
 
 
 # stacks that do not limit: the controller's belief and the rig's own force per volt both scaled
@@ -270,7 +234,6 @@ def run_mode(mode: str, cfg: ServiceConfig, settings: dict, table: GainTable,
     if given, live values to ``beamctl monitor`` at the socket ``live`` if given. ``engine``:
     see ``check_engine`` (a run with telemetry or a live view runs in the loop); both give the
     same run."""
-    from beamctl.simulation.simkernel import Accelerator, RunMonitor
 
     engine = check_engine(engine, telemetry_dir is not None or live is not None)
     controller_cfg = replace(cfg.controller, pacing="sample",

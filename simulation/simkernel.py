@@ -27,6 +27,7 @@ import math
 
 import numpy as np
 
+from beamctl.hal.sim import SimBackend
 from beamctl.rt import engine as e
 from beamctl.rt.safety import Fault, State
 
@@ -199,7 +200,6 @@ class Accelerator:
     monitor's own."""
 
     def __init__(self, controller, hal, monitor=None) -> None:
-        from beamctl.hal.sim import SimBackend
 
         if type(hal) is not SimBackend:
             raise TypeError("the simulation kernel runs the sim backend only")

@@ -53,7 +53,13 @@ from typing import Any
 
 import numpy as np
 
-from beamctl.config.schema import ConfigError, dotted_get, dotted_update, read_yaml
+from beamctl.config.schema import ConfigError, dotted_get, dotted_update, merge, nested, read_yaml
+from beamctl.gains.defaults import default_table_path
+from beamctl.gains.robust import Box, Range, evaluate
+from beamctl.gains.schedule import GainSchedule
+from beamctl.gains.table import load_table
+from beamctl.models.params import default_dict
+from beamctl.simulation.experiment import experiment_config, run_mode
 
 KINDS = ("linear", "experiment")
 LAWS = ("uniform", "normal", "truncated-normal")
@@ -136,7 +142,6 @@ def _law(data: Any, key: str, source: str) -> Law:
 
 
 def _check_key(key: str, kind: str, source: str) -> None:
-    from beamctl.models.params import default_dict
 
     if key in SPECIAL_KEYS:
         return
@@ -185,7 +190,6 @@ def study_from_dict(data: Any, source: str = "") -> Study:
         raise ConfigError("study.sampling", sampling, f"one of {', '.join(SAMPLINGS)}", source)
     designs = s.get("designs")
     if designs is None:
-        from beamctl.gains.defaults import default_table_path
 
         designs = [str(default_table_path())]
     if not isinstance(designs, list) or not designs or not all(isinstance(d, str) for d in designs):
@@ -280,7 +284,6 @@ def _table(path: str, texts: Mapping[str, str] | None = None):
     client: a remote worker needs no copy of the files) or else from the path."""
     import tempfile
 
-    from beamctl.gains.table import load_table
 
     text = None if texts is None else texts.get(path)
     key = path if text is None else hashlib.sha256(text.encode()).hexdigest()
@@ -317,8 +320,6 @@ def run_task(task: Task, texts: Mapping[str, str] | None = None) -> dict[str, An
 
 
 def _linear(task: Task, table) -> dict[str, Any]:
-    from beamctl.gains.robust import Box, Range, evaluate
-    from beamctl.gains.schedule import GainSchedule
 
     params: dict[str, Range] = {}
     values: dict[str, float] = {}
@@ -357,8 +358,6 @@ def _set_model_value(model: dict, key: str, value: float) -> None:
 
 
 def _experiment(task: Task, table) -> dict[str, Any]:
-    from beamctl.config.schema import merge, nested
-    from beamctl.simulation.experiment import experiment_config, run_mode
 
     scenario = merge(task.experiment, {"gains": {"table": task.design}, "experiment": {"paper_mode": False},
                                        "hal": {"sim": {"pace": "simulated"}}})

@@ -14,6 +14,7 @@ import yaml
 
 from beamctl.common.outputs import check_dir, check_file, write_text
 from beamctl.config.schema import ConfigError, read_yaml
+from beamctl.identification.frf_files import read_frf
 from beamctl.models.fit import (
     ALIASES,
     DEFAULT_PARAMETERS,
@@ -27,6 +28,7 @@ from beamctl.models.fit import (
 )
 from beamctl.models.measured import FrfData
 from beamctl.models.params import ModelParameters
+from beamctl.reports import plots
 from beamctl.service.setup import load_model_file
 from beamctl.tools import argtypes
 from beamctl.tools.progress import ProgressBar
@@ -135,7 +137,6 @@ def load_fitted(path: str) -> tuple[ModelParameters, float | None]:
 def figure_5a(measured: list[FrfData], before: ModelParameters,
               fitted: tuple[ModelParameters, float | None] | None, path: Path) -> Path:
     """Figure 5a for the first measurement: Gy and Gz measured, the model before and after."""
-    from beamctl.reports import plots
 
     d = measured[0]
     freqs = d.frequencies_hz
@@ -146,7 +147,6 @@ def figure_5a(measured: list[FrfData], before: ModelParameters,
 
 
 def run(args: argparse.Namespace) -> int:
-    from beamctl.identification.frf_files import read_frf
 
     start = load_model_file(args.config)
     settings = FitSettings(parameters=tuple(p.strip() for p in args.params.split(",") if p.strip()),

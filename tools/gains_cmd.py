@@ -14,9 +14,12 @@ from beamctl.common.outputs import check_dir, check_file, replacing, write_text
 from beamctl.config.schema import ConfigError
 from beamctl.gains.build import build_lqg_table, build_table, closed_loop_checks
 from beamctl.gains.defaults import DESIGNS, default_table_path, paper_table_path
+from beamctl.gains.robust import DEFAULT_BOX, describe, load_box, robust_check
 from beamctl.gains.table import GainTable, changed_file_message, load_table, write_table
 from beamctl.models import build_model
+from beamctl.reports import plots
 from beamctl.service.setup import load_model_file
+from beamctl.simulation.experiment import UNLIMITED_STACKS, rig_scenario
 from beamctl.tools import argtypes
 from beamctl.tools.progress import ProgressBar
 
@@ -110,7 +113,6 @@ def run_build(args: argparse.Namespace) -> int:
     out = check_file(args.out, "--out")
     if args.box and args.no_robust:
         raise ConfigError("--box", args.box, "no --no-robust (the box is what the robust check covers)")
-    from beamctl.gains.robust import DEFAULT_BOX, load_box
 
     box = load_box(args.box, params) if args.box else DEFAULT_BOX      # refused before minutes of work
     model = build_model(params)
@@ -155,7 +157,6 @@ def run_build(args: argparse.Namespace) -> int:
 
 def _robust(table: GainTable, box, workers: int | None, client=None):
     """The robust check with its progress on stderr, here or on the Dask cluster of ``client``."""
-    from beamctl.gains.robust import robust_check
 
     with ProgressBar("robust check") as bar:
         result = robust_check(table, box, workers=workers, progress=bar, client=client)
@@ -201,7 +202,6 @@ def run_check(args: argparse.Namespace) -> int:
     tables = [(path, _load(path, "check")) for path in files]
     box = None
     if args.robust:
-        from beamctl.gains.robust import DEFAULT_BOX, load_box
 
         box = load_box(args.box, tables[0][1].model_parameters) if args.box else DEFAULT_BOX
         if args.seed is not None:
@@ -227,7 +227,6 @@ def _write_worst_rig(out, path: str, table: GainTable, robust: dict) -> None:
     """The worst rig as a scenario of ``beamctl experiment`` (simulation/experiment.rig_scenario)."""
     import yaml
 
-    from beamctl.simulation.experiment import UNLIMITED_STACKS, rig_scenario
 
     scenario = rig_scenario(table, str(Path(path).resolve()), robust["worst_rig_si"])
     onset = ("stable to the end of the table" if robust["censored"]
@@ -285,7 +284,6 @@ def design_summary(table: GainTable) -> str:
 
 
 def _print_robust(result) -> None:
-    from beamctl.gains.robust import describe
 
     w = result.worst
     print(_robust_line(result).replace("robust check over the box", "robust"))
@@ -354,7 +352,6 @@ def run_show(args: argparse.Namespace) -> int:
     for i in range(0, len(table.loads_n), step):
         print(f"{table.loads_n[i]:8.0f} " + " ".join(f"{rows[i, c]:11.4g}" for c in cols))
     if plot_dir:
-        from beamctl.reports import plots
 
         path = plots.gains_vs_load(table, plot_dir / "gains_vs_load.png")
         print(f"\nwrote {path}")

@@ -7,6 +7,7 @@ import json
 
 from beamctl.common.signals import stop_on_signals
 from beamctl.identification.excitation import SIGNALS, SUPPORT_INPUTS
+from beamctl.identification.frf_files import check_frf_out, write_frf
 from beamctl.identification.identify import IdentificationError, IdentifySettings, identify
 from beamctl.models.measured import resonances
 from beamctl.service.setup import load_gain_table, load_service_config
@@ -57,7 +58,6 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from beamctl.identification.frf_files import check_frf_out, write_frf
 
     cfg = load_service_config(args.config)
     settings = IdentifySettings(load_n=args.load, signal=args.signal, band_hz=args.band,

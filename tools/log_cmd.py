@@ -11,11 +11,13 @@ from pathlib import Path
 import numpy as np
 
 from beamctl.common.outputs import OutputPathError, check_dir, check_file, replacing
+from beamctl.reports import recordings, report
+from beamctl.reports.plots import save
+from beamctl.reports.recordings import FORMATS
 from beamctl.rt.telemetry import TelemetryReader, read_telemetry
 
 
 def add_parser(sub) -> None:
-    from beamctl.reports.recordings import FORMATS
 
     p = sub.add_parser("log", help="telemetry files: export to MDF4/HDF5/.mat/.csv, plot")
     lsub = p.add_subparsers(dest="log_command", metavar="ACTION", required=True)
@@ -49,7 +51,6 @@ def _read(file: str, command: str) -> tuple[dict, np.ndarray]:
 
 
 def run_export(args: argparse.Namespace) -> int:
-    from beamctl.reports import recordings
 
     what = "--out" if args.out else "--out (default)"
     out = check_file(args.out or Path(args.file).with_suffix(recordings.FORMATS[args.to]), what)
@@ -71,8 +72,6 @@ def run_export(args: argparse.Namespace) -> int:
 
 
 def run_plot(args: argparse.Namespace) -> int:
-    from beamctl.reports import report
-    from beamctl.reports.plots import save
 
     out_dir = check_dir(args.dir, "DIR")
     run = report.load_run(args.file)

@@ -9,9 +9,12 @@ import json
 import numpy as np
 
 from beamctl.common.outputs import check_dir
+from beamctl.config.schema import ConfigError
+from beamctl.identification.frf_files import read_frf
 from beamctl.models import build_model, critical_load, eigenfrequencies, reduce
 from beamctl.models.fe import FEModel
 from beamctl.models.modal import ModalModel
+from beamctl.reports import plots
 from beamctl.service.setup import load_model_file
 from beamctl.tools import fit_cmd
 
@@ -84,7 +87,6 @@ def print_table(s: dict, source: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from beamctl.config.schema import ConfigError
 
     if (args.frf or args.fitted) and not args.plot:
         raise ConfigError("--plot", None, "a folder for the figures: --frf and --fitted draw figure 5a")
@@ -94,7 +96,6 @@ def run(args: argparse.Namespace) -> int:
     plot_dir = check_dir(args.plot, "--plot") if args.plot else None
     measured = []
     if args.frf:
-        from beamctl.identification.frf_files import read_frf
 
         measured = [read_frf(f) for f in args.frf]
     fitted = fit_cmd.load_fitted(args.fitted) if args.fitted else None
@@ -106,7 +107,6 @@ def run(args: argparse.Namespace) -> int:
     else:
         print_table(s, args.config or "paper defaults (models/paper.yaml)")
     if plot_dir:
-        from beamctl.reports import plots
 
         written = [
             plots.eigenfrequencies_vs_load(model, reduced, plot_dir / "fig5b_eigenfrequencies.png",

@@ -13,6 +13,9 @@ from beamctl.hal.base import HalConfigurationError
 from beamctl.hal.budget import LIMIT, bus_budget
 from beamctl.hal.config import check_bitrates
 from beamctl.hal.dbc import Contract
+from beamctl.hal.emulator import CanPlantEmulator
+from beamctl.rt import realtime
+from beamctl.rt.config import Realtime
 from beamctl.service.setup import build_plant, load_gain_table, load_service_config, plant_geometry
 from beamctl.tools.argtypes import positive, seconds
 
@@ -51,7 +54,6 @@ def add_parser(sub) -> None:
 def run_plant(args: argparse.Namespace) -> int:
     import can
 
-    from beamctl.hal.emulator import CanPlantEmulator
 
     interface, channel = parse_can(args.can)
     cfg = load_service_config(args.config)
@@ -77,8 +79,6 @@ def run_plant(args: argparse.Namespace) -> int:
     # a DAQ is hardware with a clock of its own: the emulator takes the real-time set-up the
     # service takes (SCHED_FIFO below the controller's, locked memory, the garbage collector
     # frozen: a collection stalls the plant for milliseconds), where granted
-    from beamctl.rt import realtime
-    from beamctl.rt.config import Realtime
 
     granted = realtime.acquire(Realtime(priority=EMULATOR_PRIORITY, cpu=-1, lock_memory=True))
     print(f"plant real-time set-up: {granted.get('scheduler', '-')}; garbage collector "

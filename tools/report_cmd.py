@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from beamctl.common.outputs import OutputPathError, check_file
+from beamctl.reports import report
 
 
 def add_parser(sub) -> None:
@@ -22,7 +23,6 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from beamctl.reports import report
 
     what = "--out" if args.out else "--out (default)"
     out = check_file(args.out or Path(args.recording).with_suffix(".html"), what)

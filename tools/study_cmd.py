@@ -14,6 +14,7 @@ from pathlib import Path
 
 from beamctl.common.outputs import check_dir, replacing, write_text
 from beamctl.config.schema import ConfigError
+from beamctl.reports import plots
 from beamctl.simulation.study import Study, Task, design_texts, load_study, run_task, summarise, tasks
 from beamctl.tools import argtypes
 from beamctl.tools.progress import ProgressBar
@@ -169,7 +170,6 @@ def run(args: argparse.Namespace) -> int:
             cluster.close()
     summary = summarise(rows, list(study.parameters), counts["wall_s"])
     summary.update(resumed=counts["resumed"], run=counts["run"], kind=study.kind)
-    from beamctl.reports import plots
 
     figures = plots.study_figures(rows, study.designs, out, study.kind)
     write_text(out / "summary.json", json.dumps(summary, indent=1))

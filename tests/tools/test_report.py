@@ -11,13 +11,13 @@ import pytest
 from beamctl.gains.defaults import paper_table_path
 from beamctl.hal.sim import SimBackend
 from beamctl.models import build_model, load_parameters
+from beamctl.models.modal import Deflection
 from beamctl.reports import report
 from beamctl.rt.controller import RECORD_COLUMNS, Controller
 from beamctl.rt.loop import ControlLoop
 from beamctl.rt.safety import Fault, State
 from beamctl.rt.telemetry import MAGIC, TelemetryWriter, read_telemetry
 from beamctl.service.setup import build_plant, load_gain_table, plant_geometry, service_config
-from beamctl.simulation.experiment import Deflection
 from beamctl.tools.cli import main
 
 SENSOR_HIGH_N = 1200.0
