@@ -10,13 +10,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from beamctl.common.outputs import replacing
 from beamctl.config.schema import ConfigError
-from beamctl.models import critical_load, eigenfrequencies, fe_frequency_response
+from beamctl.models import build_model, critical_load, eigenfrequencies, fe_frequency_response
 from beamctl.models.fe import FEModel
+from beamctl.models.fit import model_response
 from beamctl.models.measured import FrfData, resonances
 from beamctl.models.modal import ModalModel
-from beamctl.common.outputs import replacing
-from beamctl.models import build_model, critical_load
+from beamctl.models.params import ModelParameters
 from beamctl.rt.safety import Fault, State
 from beamctl.simulation.experiment import direction_at
 from beamctl.simulation.study import survival
@@ -674,3 +675,14 @@ def study_figures(rows: Sequence[dict], designs: Sequence[str], out_dir: Path,
                          title="Probability of failure versus axial load (Kaplan-Meier, + censored)",
                          legend={"fontsize": 8, "loc": "upper left"}))
     return paths
+
+
+def figure_5a(measured: list[FrfData], before: ModelParameters,
+              fitted: tuple[ModelParameters, float | None] | None, path: Path) -> Path:
+    """Figure 5a for the first measurement: Gy and Gz measured, the model before and after."""
+    d = measured[0]
+    freqs = d.frequencies_hz
+    curves = [("model before the fit", model_response(before, d, freqs))]
+    if fitted is not None:
+        curves.append(("model after the fit", model_response(fitted[0], d, freqs, fitted[1])))
+    return frequency_response_measured(d, curves, path)

@@ -25,9 +25,9 @@ from typing import Any
 
 import numpy as np
 
+from beamctl.common.extras import require
 from beamctl.rt.controller import code_labels, column_unit, flag_labels
 from beamctl.rt.telemetry import TelemetryError, TelemetryReader
-from beamctl.common.extras import require
 
 FORMATS = {"mdf": ".mf4", "h5": ".h5", "mat73": ".mat", "mat": ".mat", "csv": ".csv"}
 EXTRA = "recordings"

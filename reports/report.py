@@ -23,18 +23,16 @@ from typing import Any
 
 import numpy as np
 
+from beamctl.common.outputs import replacing
+from beamctl.config.schema import ConfigError
+from beamctl.models import build_model, critical_load, load_parameters
 from beamctl.models.modal import Deflection
+from beamctl.models.params import parameters_from_dict
+from beamctl.reports import plots
+from beamctl.reports.plots import OFF_SCALE_M, RunCurves, png_bytes
 from beamctl.rt.controller import FLAG_NO_NEW_SAMPLE, FLAG_SATURATED_A, FLAG_SATURATED_B
 from beamctl.rt.safety import DESCRIPTIONS, Fault, State
 from beamctl.rt.telemetry import TelemetryError, read_telemetry
-from beamctl.common.outputs import replacing
-from beamctl.config.schema import ConfigError
-from beamctl.models import build_model, load_parameters
-from beamctl.models import critical_load
-from beamctl.models.params import parameters_from_dict
-from beamctl.reports import plots
-from beamctl.reports.plots import OFF_SCALE_M, RunCurves
-from beamctl.reports.plots import png_bytes
 from beamctl.simulation.experiment import direction_at, first_crossing
 
 FAILURE_DEFLECTION_M = 1.0e-3         # the paper's larger admissible deflection (section 4)

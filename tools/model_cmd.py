@@ -10,6 +10,7 @@ import numpy as np
 
 from beamctl.common.outputs import check_dir
 from beamctl.config.schema import ConfigError
+from beamctl.identification.fit_files import load_fitted
 from beamctl.identification.frf_files import read_frf
 from beamctl.models import build_model, critical_load, eigenfrequencies, reduce
 from beamctl.models.fe import FEModel
@@ -98,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
     if args.frf:
 
         measured = [read_frf(f) for f in args.frf]
-    fitted = fit_cmd.load_fitted(args.fitted) if args.fitted else None
+    fitted = load_fitted(args.fitted) if args.fitted else None
     model = build_model(params)
     reduced = reduce(model)
     s = summary(model, reduced)
@@ -116,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
                 plot_dir / "fig6_frequency_response.png"),
         ]
         if measured:
-            written.append(fit_cmd.figure_5a(measured, params, fitted, plot_dir / fit_cmd.FIG5A))
+            written.append(plots.figure_5a(measured, params, fitted, plot_dir / fit_cmd.FIG5A))
         if not args.json:
             print()
             for path in written:

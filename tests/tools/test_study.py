@@ -154,7 +154,7 @@ def test_a_worker_killed_mid_study_loses_no_sample(tmp_path):
     local = DaskCluster(tmp_path)
     try:
         from beamctl.simulation.study import study_from_dict as parse
-        from beamctl.tools.study_cmd import run_study
+        from beamctl.simulation.study_run import run_study
 
         study = parse({"study": {**STUDY["study"], "samples": 8}})
         killed = threading.Event()
