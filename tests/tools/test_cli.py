@@ -55,9 +55,9 @@ COMMANDS = {
     "log plot DIR": ("log plot", lambda p, tmp: ["log", "plot", str(tmp / "run.btl"), p], "DIR",
                      (log_cmd, "read_telemetry")),
     "run --telemetry": ("run", lambda p, tmp: ["run", "--config", _config(tmp, {}), "--telemetry", p],
-                        "--telemetry", (run_cmd, "load_gain_table")),
+                        "--telemetry", (run_cmd, "Service")),
     "run.telemetry": ("run", lambda p, tmp: ["run", "--config", _config(tmp, {"run": {"telemetry": p}})],
-                      "service.yaml: run.telemetry", (run_cmd, "load_gain_table")),
+                      "service.yaml: run.telemetry", (run_cmd, "Service")),
 }
 DIRECTORY_FLAGS = {"experiment --out", "model --plot", "gains show --plot", "log plot DIR"}
 
@@ -126,7 +126,7 @@ def test_a_service_whose_hal_cannot_open_leaves_no_empty_recording(tmp_path, cap
 
 
 def test_a_can_recording_path_is_checked_with_the_telemetry(tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(run_cmd, "load_gain_table", _no_work)
+    monkeypatch.setattr(run_cmd, "Service", _no_work)
     config = _config(tmp_path, {"hal": {"backend": "can", "can": {"record": str(tmp_path)}}})
     assert main(["run", "--config", config]) == 2
     _one_line_error(capsys, "hal.can.record", "it is a directory")
