@@ -55,3 +55,17 @@ def other_table(tmp_path_factory):
     assert main(["gains", "build", "--design", "integral-lqr", "--no-robust", "--grid", "0:4000:250",
                  "--out", str(out)]) == 0
     return out
+
+
+@pytest.fixture(scope="session")
+def dask_cluster(tmp_path_factory):
+    """A Dask scheduler and two workers, each a process of its own on 127.0.0.1
+    (tests/tools/processes.py), shared by the tests that only send it work: starting the processes
+    and importing beamctl, scipy and numba in each worker costs seconds every time. A test that
+    kills a worker starts a cluster of its own."""
+    pytest.importorskip("distributed")
+    from tests.tools.processes import DaskCluster
+
+    cluster = DaskCluster(tmp_path_factory.mktemp("dask"))
+    yield cluster
+    cluster.close()

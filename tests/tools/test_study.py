@@ -33,6 +33,15 @@ STUDY = {"study": {
     "linear": {"max_step_n": 200, "fine_step_n": 40, "resolution_n": 5.0}}}
 
 
+def _on(design) -> dict:
+    """The small study against ``design``. The tests that run it on Dask take the paper's design
+    on its coarser 250 N grid (tests/conftest.py's other_table): each sample's full walk from the
+    table's first load checks a quarter of the loads of the shipped 50 N grid (0.4 s instead of
+    1.4 s), and it loses the same six rigs within its table, the delay moving the onset most and
+    down (Spearman -0.89 on either grid)."""
+    return {"study": {**STUDY["study"], "designs": [str(design)]}}
+
+
 def _write(tmp_path: Path, data: dict, name: str = "study.yaml") -> str:
     path = tmp_path / name
     path.write_text(yaml.safe_dump(data))
@@ -79,10 +88,15 @@ def test_a_bad_study_file_is_refused_naming_the_key(change, key):
 
 
 @pytest.fixture(scope="module")
-def embedded(tmp_path_factory):
+def study(other_table) -> dict:
+    return _on(other_table)
+
+
+@pytest.fixture(scope="module")
+def embedded(tmp_path_factory, study):
     """The study on the embedded local cluster (two worker processes)."""
     folder = tmp_path_factory.mktemp("embedded")
-    config = _write(folder, STUDY)
+    config = _write(folder, study)
     assert main(["study", "--config", config, "--out", str(folder / "out"), "--workers", "2"]) == 0
     return folder / "out"
 
@@ -115,48 +129,44 @@ def test_the_study_writes_one_row_per_sample_a_summary_and_figures(embedded):
         assert (embedded / name).read_bytes()[:4] == b"\x89PNG"
 
 
-def test_a_stopped_study_resumes_where_it_stopped(embedded, tmp_path, capsys):
+def test_a_stopped_study_resumes_where_it_stopped(embedded, study, dask_cluster, tmp_path, capsys):
+    """Run again on a folder cut short, the study keeps its rows and runs the others (on the
+    shared cluster: what is tested is the folder, the embedded cluster is tested above)."""
     folder = tmp_path / "out"
     folder.mkdir()
     for name in ("study.json",):
         (folder / name).write_text((embedded / name).read_text())
     lines = (embedded / "samples.csv").read_text().splitlines()
     (folder / "samples.csv").write_text("\n".join(lines[:3]) + "\n" + lines[3][:20])   # 2 rows and a cut one
-    config = _write(tmp_path, STUDY)
-    assert main(["study", "--config", config, "--out", str(folder), "--workers", "1", "--json"]) == 0
+    config = _write(tmp_path, study)
+    assert main(["study", "--config", config, "--out", str(folder), "--scheduler", dask_cluster.address,
+                 "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["resumed"] == 2 and summary["run"] == 4
     assert _rows(folder) == _rows(embedded)
 
 
-def test_a_folder_of_another_study_is_refused(embedded, tmp_path, capsys):
-    config = _write(tmp_path, {"study": {**STUDY["study"], "seed": 4}})
+def test_a_folder_of_another_study_is_refused(embedded, study, tmp_path, capsys):
+    config = _write(tmp_path, {"study": {**study["study"], "seed": 4}})
     assert main(["study", "--config", config, "--out", str(embedded)]) == 2
     assert "another study" in capsys.readouterr().err
 
 
-@pytest.fixture(scope="module")
-def cluster(tmp_path_factory):
-    c = DaskCluster(tmp_path_factory.mktemp("cluster"))
-    yield c
-    c.close()
-
-
-def test_an_existing_cluster_gives_the_rows_of_the_embedded_one(cluster, embedded, tmp_path):
-    config = _write(tmp_path, STUDY)
+def test_an_existing_cluster_gives_the_rows_of_the_embedded_one(dask_cluster, embedded, study, tmp_path):
+    config = _write(tmp_path, study)
     out = tmp_path / "out"
-    assert main(["study", "--config", config, "--out", str(out), "--scheduler", cluster.address]) == 0
+    assert main(["study", "--config", config, "--out", str(out), "--scheduler", dask_cluster.address]) == 0
     assert _rows(tmp_path / "out") == _rows(embedded)
 
 
-def test_a_worker_killed_mid_study_loses_no_sample(tmp_path):
+def test_a_worker_killed_mid_study_loses_no_sample(study, tmp_path):
     """The rows of a worker that died are computed again elsewhere: every sample once."""
-    local = DaskCluster(tmp_path)
+    local = DaskCluster(tmp_path)       # its own: the shared one keeps both its workers
     try:
         from beamctl.simulation.study import study_from_dict as parse
         from beamctl.simulation.study_run import run_study
 
-        study = parse({"study": {**STUDY["study"], "samples": 8}})
+        eight = parse({"study": {**study["study"], "samples": 8}})
         killed = threading.Event()
 
         def kill_after_the_first_row(done, total, label):
@@ -165,7 +175,7 @@ def test_a_worker_killed_mid_study_loses_no_sample(tmp_path):
                 killed.set()
 
         with distributed.Client(local.address, timeout=30) as client:
-            rows, counts = run_study(study, tmp_path, client, progress=kill_after_the_first_row)
+            rows, counts = run_study(eight, tmp_path, client, progress=kill_after_the_first_row)
         assert killed.is_set() and local.workers[0].wait(timeout=10) == -signal.SIGKILL
     finally:
         local.close()
@@ -215,16 +225,16 @@ def test_a_whole_list_key_scales_every_element():
         "damping does not move the critical load")
 
 
-def test_a_worker_needs_no_copy_of_the_design_files(tmp_path):
+def test_a_worker_needs_no_copy_of_the_design_files(study, tmp_path):
     """The client sends the tables' contents: a design path the worker cannot read still runs."""
     from beamctl.simulation.study import design_texts, run_task, tasks
 
-    study = study_from_dict(STUDY)
+    study = study_from_dict(study)
     texts = design_texts(study)
     task = tasks(study)[0]
     elsewhere = "/nonexistent/on/this/worker/paper.yaml"
     moved = type(task)(**{**task.__dict__, "design": elsewhere})
-    row = run_task(moved, {elsewhere: texts[str(paper_table_path())]})
+    row = run_task(moved, {elsewhere: texts[study.designs[0]]})
     assert row == {**run_task(task, texts), "design": elsewhere}
 
 
