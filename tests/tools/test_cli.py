@@ -193,8 +193,11 @@ def test_ctrl_c_or_sigterm_during_gains_build_leaves_no_table(tmp_path, signum, 
 
 def test_a_reader_that_stops_early_ends_the_command_quietly(tmp_path):
     """``beamctl gains check | head``: exit 141 (the shell's status for SIGPIPE), no traceback."""
-    process = beamctl("gains", "check", cwd=tmp_path)
-    # a one-page pipe: the check's ~8 kB table cannot all be written before this reader leaves
+    from beamctl.gains.defaults import paper_table_path
+
+    process = beamctl("gains", "check", str(paper_table_path()), cwd=tmp_path)
+    # a one-page pipe: the check's ~7 kB table (the paper's: every load and midpoint, checked in
+    # a second) cannot all be written before this reader leaves
     fcntl.fcntl(process.stdout.fileno(), fcntl.F_SETPIPE_SZ, 4096)
     try:
         assert process.stdout.read(10) == b"gain table"
