@@ -138,43 +138,17 @@ def _page_of_a_service(tmp_path, *service_flags: str):
 
 
 @pytest.mark.skipif(BROWSER is None, reason=NO_BROWSER)
-def test_the_page_in_a_browser_shows_the_running_service_s_values_as_they_change(tmp_path):
-    with _page_of_a_service(tmp_path) as (service, browser):
-        first = _page_when(browser, lambda v: v["state"] == "RUNNING" and v["connection"] == "live"
-                           and v["load"] == v["load"], "the service RUNNING and live")
-        second = _page_when(browser, lambda v: v["time"] >= first["time"] + 2.0,
-                            f"a time 2 s past {first['time']} s")
-    assert first["fault"].startswith("NONE"), first
-    assert second["cycles"] > first["cycles"] and second["points"] > 0, (first, second)
-    # shown with 0.1 N and 1 ms: over at least 2 s (20 N) the rate is good to 1 %
-    rate = (second["load"] - first["load"]) / (second["time"] - first["time"])
-    assert rate == pytest.approx(LOAD_RATE_N_PER_S, rel=0.02), (first, second)
-    out, err = service.communicate()
-    assert service.returncode == 0 and b"ended STOPPED" in out, err.decode()
-
-
-@pytest.mark.skipif(BROWSER is None, reason=NO_BROWSER)
-def test_the_page_s_buttons_start_and_stop_the_service(tmp_path):
-    """A service started with --hold waits ARMED; the page's Start runs it, its Stop ends it (the
-    operator's stop: the stacks ramp to bias, the service exits 0), each reply on the page."""
+def test_the_page_s_buttons_command_the_service_and_the_page_shows_its_values_as_they_change(
+        tmp_path, other_table):
+    """A service started with --hold waits ARMED at bias. The page's Switch gains swaps the table
+    there, and the page's title then names the table the service runs, not the one it started
+    with; the page's Start runs it, and the values it shows change as the service runs (the
+    load at the ramp's rate); its Stop ends it (the operator's stop: the stacks ramp to bias, the
+    service exits 0), each reply on the page. One service, monitor and browser for all of it:
+    starting them is most of the test's time; each step fails saying what the page did not show."""
     with _page_of_a_service(tmp_path, "--hold") as (service, browser):
-        _page_when(browser, lambda v: v["state"] == "ARMED" and v["connection"] == "live", "ARMED (--hold)")
-        browser.evaluate("document.getElementById('button-start').click()")
-        started = _page_when(browser, lambda v: v["state"] == "RUNNING", "RUNNING after Start")
-        browser.evaluate("document.getElementById('button-stop').click()")
-        stopped = _page_when(browser, lambda v: v["state"] == "STOPPED", "STOPPED after Stop")
-        out, err = service.communicate(timeout=DEADLINE_S)
-    assert "start: done" in started["reply"] and "ARMED -> RUNNING" in started["reply"], started
-    assert "stop: done" in stopped["reply"], stopped
-    assert service.returncode == 0 and b"stopped by operator" in out, (out.decode(), err.decode())
-
-
-@pytest.mark.skipif(BROWSER is None, reason=NO_BROWSER)
-def test_the_page_s_switch_gains_runs_another_table_and_names_it(tmp_path, other_table):
-    """At bias (--hold: ARMED) the page's Switch gains swaps the table; the page's title then names
-    the table the service runs, not the one it started with."""
-    with _page_of_a_service(tmp_path, "--hold") as (service, browser):
-        armed = _page_when(browser, lambda v: v["state"] == "ARMED" and v["connection"] == "live", "ARMED")
+        armed = _page_when(browser, lambda v: v["state"] == "ARMED" and v["connection"] == "live",
+                           "ARMED (--hold), live")
         started_with = browser.evaluate("document.getElementById('run-label').textContent")
         browser.evaluate(f"document.getElementById('gains-table').value = {json.dumps(str(other_table))};"
                          "document.getElementById('button-gains').click()")
@@ -185,12 +159,28 @@ def test_the_page_s_switch_gains_runs_another_table_and_names_it(tmp_path, other
         while str(other_table) not in title and time.monotonic() < deadline:
             title = browser.evaluate("document.getElementById('run-label').textContent")
             time.sleep(0.2)
-        _stop(service)
+        browser.evaluate("document.getElementById('button-start').click()")
+        started = _page_when(browser, lambda v: v["state"] == "RUNNING" and v["load"] == v["load"],
+                             "RUNNING after Start")
+        later = _page_when(browser, lambda v: v["time"] >= started["time"] + 2.0,
+                           f"a time 2 s past {started['time']} s")
+        browser.evaluate("document.getElementById('button-stop').click()")
+        stopped = _page_when(browser, lambda v: v["state"] == "STOPPED", "STOPPED after Stop")
+        out, err = service.communicate(timeout=DEADLINE_S)
     assert armed["fault"].startswith("NONE"), armed
     assert str(paper_table_path()) in started_with, started_with
     assert "gains: done" in swapped["reply"], swapped["reply"]
     assert title.endswith(f"gain table {other_table}"), (
         f"the page's title after the swap: {title!r}; the service runs {other_table}")
+    assert "start: done" in started["reply"] and "ARMED -> RUNNING" in started["reply"], started
+    assert started["fault"].startswith("NONE"), started
+    assert later["cycles"] > started["cycles"] and later["points"] > 0, (started, later)
+    # shown with 0.1 N and 1 ms: over at least 2 s (20 N) the rate is good to 1 %
+    rate = (later["load"] - started["load"]) / (later["time"] - started["time"])
+    assert rate == pytest.approx(LOAD_RATE_N_PER_S, rel=0.02), (started, later)
+    assert "stop: done" in stopped["reply"], stopped
+    assert service.returncode == 0 and b"ended STOPPED" in out and b"stopped by operator" in out, (
+        out.decode(), err.decode())
 
 
 def test_a_viewer_that_stalls_and_dies_never_holds_up_the_service(tmp_path, short_dir):
@@ -208,7 +198,8 @@ def test_a_viewer_that_stalls_and_dies_never_holds_up_the_service(tmp_path, shor
         monitor.send_signal(signal.SIGSTOP)
         _records_reach(telemetry, _records(telemetry) + 2 * 2500, service)
         monitor.kill()
-        _records_reach(telemetry, _records(telemetry) + 2 * 2500, service)
+        # a second: four drains, each sent to a socket nobody reads any more (dropped at once)
+        _records_reach(telemetry, _records(telemetry) + 2500, service)
         service.send_signal(signal.SIGINT)
         out, err = service.communicate(timeout=DEADLINE_S)
     finally:
