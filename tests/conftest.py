@@ -58,14 +58,20 @@ def other_table(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def dask_cluster(tmp_path_factory):
-    """A Dask scheduler and two workers, each a process of its own on 127.0.0.1
-    (tests/tools/processes.py), shared by the tests that only send it work: starting the processes
-    and importing beamctl, scipy and numba in each worker costs seconds every time. A test that
-    kills a worker starts a cluster of its own."""
+def _dask_cluster(tmp_path_factory):
     pytest.importorskip("distributed")
     from tests.tools.processes import DaskCluster
 
     cluster = DaskCluster(tmp_path_factory.mktemp("dask"))
     yield cluster
     cluster.close()
+
+
+@pytest.fixture
+def dask_cluster(_dask_cluster):
+    """A Dask scheduler and two workers, each a process of its own on 127.0.0.1
+    (tests/tools/processes.py), shared by the tests: starting the processes and importing
+    beamctl, scipy and numba in each worker costs seconds every time. A worker that a test
+    killed is replaced by a new one before the next test gets the cluster."""
+    _dask_cluster.revive()
+    return _dask_cluster

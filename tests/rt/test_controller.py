@@ -216,9 +216,11 @@ def test_the_step_calls_no_scipy(table):
 
 # tracemalloc counts every thread's allocations: measured in a fresh interpreter that runs
 # nothing but the controller, so no other thread of the test session adds to the figures;
-# the largest transient allocation of each step is taken on its own (peak reset per step)
+# the largest transient allocation of each step is taken on its own (peak reset per step).
+# One interpreter probes the three cases in turn, each with a controller of its own and
+# tracemalloc started afresh (starting one costs a second and a half of imports).
 _ALLOCATION_PROBE = """
-import json, tracemalloc
+import json, sys, tracemalloc
 import numpy as np
 from beamctl.gains.compensator import MATRICES
 from beamctl.gains.defaults import paper_table_path
@@ -228,48 +230,62 @@ from beamctl.hal.base import Sample
 from beamctl.rt.config import controller_config
 from beamctl.rt.controller import Controller
 
-# a saturation that lasts the whole probe is no fault here (the fault's message is allocated once)
-c = Controller(load_table(paper_table_path()),
-               controller_config({"allocation": ALLOCATION, "safety": {"saturation_time_s": 100.0}}))
-rng = np.random.default_rng(0)
-samples = []
-for k in range(50):
-    s = Sample()
-    s.strains[:] = OFFSET + 1e-6 * rng.standard_normal(4)
-    s.axial_load = 1000.0 + 500 * k / 50
-    samples.append(s)
-c.arm(samples[0])
-c.start()
-many = samples * 20
-for s in many:
-    c.step(s)
-step, get, reset = c.step, tracemalloc.get_traced_memory, tracemalloc.reset_peak
-tracemalloc.start()
-worst = 0
-saturated = 0
-start, _ = get()
-for s in many:
-    reset()
-    base, _ = get()
-    step(s)
-    _, peak = get()
-    worst = max(worst, peak - base)
-    saturated += c.allocator.scale_a < 1.0
-end, _ = get()
-print(json.dumps({"kept": end - start, "peak": worst, "state": c.state.name, "saturated": saturated,
-                  "array_bytes": int(np.zeros(4).__sizeof__())}))
+table = load_table(paper_table_path())
+for ALLOCATION, OFFSET in json.loads(sys.argv[1]):
+    # a saturation that lasts the whole probe is no fault here (the fault's message is allocated once)
+    c = Controller(table,
+                   controller_config({"allocation": ALLOCATION, "safety": {"saturation_time_s": 100.0}}))
+    rng = np.random.default_rng(0)
+    samples = []
+    for k in range(50):
+        s = Sample()
+        s.strains[:] = OFFSET + 1e-6 * rng.standard_normal(4)
+        s.axial_load = 1000.0 + 500 * k / 50
+        samples.append(s)
+    c.arm(samples[0])
+    c.start()
+    many = samples * 20
+    for s in many:
+        c.step(s)
+    step, get, reset = c.step, tracemalloc.get_traced_memory, tracemalloc.reset_peak
+    tracemalloc.start()
+    worst = 0
+    saturated = 0
+    start, _ = get()
+    for s in many:
+        reset()
+        base, _ = get()
+        step(s)
+        _, peak = get()
+        worst = max(worst, peak - base)
+        saturated += c.allocator.scale_a < 1.0
+    end, _ = get()
+    tracemalloc.stop()
+    print(json.dumps({"kept": end - start, "peak": worst, "state": c.state.name, "saturated": saturated,
+                      "array_bytes": int(np.zeros(4).__sizeof__())}), flush=True)
 """
 
 
 # a beam vibrating about straight: the stacks have room; bent (a strain offset the integral
 # action answers): the allocation saturates, and ``clip`` clips stacks
-@pytest.mark.parametrize(("allocation", "offset"), [("scale", 0.0), ("scale", 1e-4), ("clip", 1e-4)])
-def test_the_step_allocates_no_arrays(tmp_path, allocation, offset):
-    probe_code = "ALLOCATION, OFFSET = " + repr((allocation, offset)) + "\n" + _ALLOCATION_PROBE
-    out = subprocess.run([sys.executable, "-c", probe_code], capture_output=True, text=True,
-                         cwd=tmp_path, timeout=120, check=False)
+ALLOCATION_CASES = [("scale", 0.0), ("scale", 1e-4), ("clip", 1e-4)]
+
+
+@pytest.fixture(scope="module")
+def allocation_probes(tmp_path_factory) -> dict:
+    """{(allocation, offset): the probe's figures} for every case, from one fresh interpreter."""
+    out = subprocess.run([sys.executable, "-c", _ALLOCATION_PROBE, json.dumps(ALLOCATION_CASES)],
+                         capture_output=True, text=True, cwd=tmp_path_factory.mktemp("probe"), timeout=120,
+                         check=False)
     assert out.returncode == 0, out.stderr
-    probe = json.loads(out.stdout)
+    lines = out.stdout.splitlines()
+    assert len(lines) == len(ALLOCATION_CASES), out.stdout
+    return {case: json.loads(line) for case, line in zip(ALLOCATION_CASES, lines, strict=True)}
+
+
+@pytest.mark.parametrize(("allocation", "offset"), ALLOCATION_CASES)
+def test_the_step_allocates_no_arrays(allocation_probes, allocation, offset):
+    probe = allocation_probes[(allocation, offset)]
     assert probe["state"] == "RUNNING"
     assert (probe["saturated"] > 0) == (offset > 0), f"saturated in {probe['saturated']} of 1000 steps"
     # A step's scalar arithmetic keeps a few Python floats (24 bytes each) alive at a time; one

@@ -58,16 +58,29 @@ class DaskCluster:
         while not self.file.exists() and time.monotonic() < deadline:
             time.sleep(0.1)
         self.address = json.loads(self.file.read_text())["address"]
-        worker = [dask, "worker", "--scheduler-file", str(self.file), "--nthreads", "1", "--no-nanny",
-                  "--host", "127.0.0.1", *common]
-        self.workers = [subprocess.Popen(worker,
-                                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                         env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
-                        for _ in range(2)]
+        self._worker = [dask, "worker", "--scheduler-file", str(self.file), "--nthreads", "1", "--no-nanny",
+                        "--host", "127.0.0.1", *common]
+        self.workers = [self._start_worker() for _ in range(2)]
+        self._wait_for_workers()
+
+    def _start_worker(self) -> subprocess.Popen:
+        return subprocess.Popen(self._worker, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
+
+    def _wait_for_workers(self) -> None:
         import distributed
 
         with distributed.Client(self.address, timeout=30) as client:
-            client.wait_for_workers(2, timeout=60)
+            client.wait_for_workers(len(self.workers), timeout=60)
+
+    def revive(self) -> None:
+        """A new worker in place of each one that has ended (a test killed it), registered with
+        the scheduler before this returns."""
+        dead = [i for i, p in enumerate(self.workers) if p.poll() is not None]
+        for i in dead:
+            self.workers[i] = self._start_worker()
+        if dead:
+            self._wait_for_workers()
 
     def close(self) -> None:
         for p in self.workers:

@@ -16,8 +16,6 @@ from beamctl.gains.defaults import paper_table_path
 from beamctl.simulation.study import draw, study_from_dict, summarise, survival
 from beamctl.tools.cli import main
 
-from .processes import DaskCluster
-
 distributed = pytest.importorskip("distributed")
 
 # a small linear study: 6 rigs of a box-like scatter, coarse load steps, against the paper's
@@ -159,26 +157,24 @@ def test_an_existing_cluster_gives_the_rows_of_the_embedded_one(dask_cluster, em
     assert _rows(tmp_path / "out") == _rows(embedded)
 
 
-def test_a_worker_killed_mid_study_loses_no_sample(study, tmp_path):
-    """The rows of a worker that died are computed again elsewhere: every sample once."""
-    local = DaskCluster(tmp_path)       # its own: the shared one keeps both its workers
-    try:
-        from beamctl.simulation.study import study_from_dict as parse
-        from beamctl.simulation.study_run import run_study
+def test_a_worker_killed_mid_study_loses_no_sample(study, dask_cluster, tmp_path):
+    """The rows of a worker that died are computed again elsewhere: every sample once. (The
+    shared cluster's worker is killed: the fixture starts a new one for the next test.)"""
+    from beamctl.simulation.study import study_from_dict as parse
+    from beamctl.simulation.study_run import run_study
 
-        eight = parse({"study": {**study["study"], "samples": 8}})
-        killed = threading.Event()
+    eight = parse({"study": {**study["study"], "samples": 8}})
+    killed = threading.Event()
+    victim = dask_cluster.workers[0]
 
-        def kill_after_the_first_row(done, total, label):
-            if not killed.is_set():
-                local.workers[0].kill()
-                killed.set()
+    def kill_after_the_first_row(done, total, label):
+        if not killed.is_set():
+            victim.kill()
+            killed.set()
 
-        with distributed.Client(local.address, timeout=30) as client:
-            rows, counts = run_study(eight, tmp_path, client, progress=kill_after_the_first_row)
-        assert killed.is_set() and local.workers[0].wait(timeout=10) == -signal.SIGKILL
-    finally:
-        local.close()
+    with distributed.Client(dask_cluster.address, timeout=30) as client:
+        rows, counts = run_study(eight, tmp_path, client, progress=kill_after_the_first_row)
+    assert killed.is_set() and victim.wait(timeout=10) == -signal.SIGKILL
     assert sorted(r["sample"] for r in rows) == list(range(8))
     assert [int(r["sample"]) for r in _rows(tmp_path)] == list(range(8)), "written once each"
 
