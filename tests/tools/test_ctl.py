@@ -112,34 +112,84 @@ def _ctl(capsys, *argv: str) -> tuple[int, str, str]:
     return code, captured.out, captured.err
 
 
-def test_ctl_refuses_what_a_running_controller_cannot_do_and_stops_it(service, other_table, control_socket,
-                                                                      capsys):
-    """Running: rearm, gains and start are refused saying why (exit 1) and change nothing; stop
-    ramps to bias and ends the service with exit 0. Every command is in the telemetry at the
-    sample it was decided at, and in the service's log. The socket file, left by an earlier
-    service that died, is taken over, made 0660 and removed at the end."""
+def _raw(path: Path, data: bytes, timeout_s: float = DEADLINE_S) -> dict:
+    """Send bytes as they are and read the one-line reply."""
+    with socket.socket(socket.AF_UNIX) as s:
+        s.settimeout(timeout_s)
+        s.connect(str(path))
+        s.sendall(data)
+        reply = b""
+        while not reply.endswith(b"\n"):
+            chunk = s.recv(65536)
+            assert chunk, f"the service closed the connection without a reply to {data[:40]!r}"
+            reply += chunk
+    return json.loads(reply)
+
+
+def test_a_running_service_refuses_what_it_cannot_do_answers_malformed_requests_and_stops(
+        service, other_table, control_socket, capsys):
+    """One running service, in turn (starting a service is most of a test's time; each step fails
+    saying what broke):
+
+    - the socket file, left by an earlier service that died, is taken over and made 0660;
+    - a second service on its live socket is refused in one line before it records anything;
+    - malformed requests are answered saying why, and a client that connects and says nothing
+      holds its connection (answered when its read times out) while the others are served;
+    - rearm, gains and start are refused saying why (exit 1) and change nothing;
+    - stop ramps to bias and ends the service with exit 0.
+
+    Only the operator's commands reach the control loop: each is in the telemetry at the sample
+    it was decided at, and in the service's log; the socket file is removed at the end."""
     with socket.socket(socket.AF_UNIX) as dead:     # a socket file nobody listens at any more
         dead.bind(str(control_socket))
     svc = service()
     before = svc.wait_for("RUNNING", running)
     assert stat.S_IMODE(os.stat(control_socket).st_mode) == 0o660, "the socket's owner and group command"
 
-    for argv, why in ((["rearm"], "no fault to re-arm"), (["gains", str(other_table)], "only at bias"),
-                      (["start"], "already running")):
-        code, out, err = _ctl(capsys, *argv)
-        assert code == 1, (argv, out, err)
-        assert why in err and len(err.strip().splitlines()) == 1, err
-    code, out, _ = _ctl(capsys, "status", "--json")
-    status = json.loads(out)["status"]
-    assert code == 0 and status["state"] == "RUNNING" and status["cycles"] > before["cycles"], status
-    assert status["table"] == str(paper_table_path()) and status["table_sha256"] == load_table(
-        paper_table_path()).sha256, "a refused gains command changed the table"
+    with socket.socket(socket.AF_UNIX) as silent:
+        silent.settimeout(DEADLINE_S)
+        silent.connect(str(control_socket))         # connects and says nothing
+
+        second = svc.telemetry.parent / "second.btl"
+        assert main(["run", "--config", svc.config, "--telemetry", str(second)]) == 2
+        err = capsys.readouterr().err
+        assert "another service is running" in err and len(err.strip().splitlines()) == 1, err
+        assert not second.exists(), "the refused second service left a recording"
+
+        for data, why in [
+            (b"stop now\n", "not JSON"),
+            (b"\xff\xfe{}\n", "not UTF-8"),
+            (b"[1, 2]\n", "not an object"),
+            (b'{"command": "explode"}\n', "unknown command 'explode'"),
+            (b'{"command": "stop", "table": "/x.yaml"}\n', "unexpected key 'table'"),
+            (b'{"command": "gains"}\n', 'needs "table"'),
+            (b'{"command": "gains", "table": "gains.yaml"}\n', "absolute path"),
+            (b"x" * (70 * 1024), "longer than 65536 bytes"),
+        ]:
+            reply = _raw(control_socket, data)
+            assert reply["ok"] is False and why in reply["message"], (data[:40], reply)
+            assert reply["status"]["state"] == "RUNNING", reply
+
+        for argv, why in ((["rearm"], "no fault to re-arm"), (["gains", str(other_table)], "only at bias"),
+                          (["start"], "already running")):
+            code, out, err = _ctl(capsys, *argv)
+            assert code == 1, (argv, out, err)
+            assert why in err and len(err.strip().splitlines()) == 1, err
+        # the silent client holds its connection: the others were answered meanwhile
+        code, out, _ = _ctl(capsys, "status", "--json")
+        status = json.loads(out)["status"]
+        assert code == 0 and status["state"] == "RUNNING" and status["cycles"] > before["cycles"], status
+        assert status["table"] == str(paper_table_path()) and status["table_sha256"] == load_table(
+            paper_table_path()).sha256, "a refused gains command changed the table"
+        answer = json.loads(silent.recv(65536))
+    assert answer["ok"] is False and "no complete request" in answer["message"], answer
 
     code, out, err = _ctl(capsys, "stop")
     assert code == 0 and "RUNNING -> STOPPING" in out, (out, err)
     assert svc.ended() == 0, svc.log
     assert svc.commands() == [("rearm refused", "RUNNING"), ("gains refused", "RUNNING"),
-                              ("start refused", "RUNNING"), ("stop", "STOPPING")]
+                              ("start refused", "RUNNING"), ("stop", "STOPPING")], (
+        "the operator's commands, and nothing else (a malformed request reached the control loop?)")
     _, rows = read_telemetry(svc.telemetry)
     assert rows[-1, COL["state"]] == State.STOPPED
     np.testing.assert_array_equal(rows[-1, V], 75.0, err_msg="the service ended with the stacks off bias")
@@ -147,18 +197,11 @@ def test_ctl_refuses_what_a_running_controller_cannot_do_and_stops_it(service, o
     for line in ("operator rearm: refused", f"operator gains {other_table}: refused",
                  "operator start: refused", "operator stop: carried out (RUNNING -> STOPPING)"):
         assert line in log, f"{line!r} is not in the service's log:\n{log}"
+    # the eight malformed requests, the silent client and the second service's probe (it
+    # connects to see whether a service answers, and sends nothing)
+    assert log.count("control socket: refused a request") == 10, log
     assert "(stopped by operator)" in (svc.telemetry.parent / "service.out").read_text()
     assert not control_socket.exists(), "the socket file outlived its service"
-
-
-def test_a_second_service_on_a_live_socket_is_refused_in_one_line(service, capsys):
-    svc = service()
-    svc.wait_for("RUNNING", running)
-    assert main(["run", "--config", svc.config, "--telemetry", str(svc.telemetry.parent / "second.btl")]) == 2
-    err = capsys.readouterr().err
-    assert "another service is running" in err and len(err.strip().splitlines()) == 1, err
-    assert not (svc.telemetry.parent / "second.btl").exists(), "the refused service left a recording"
-    assert svc.wait_for("RUNNING still", running)["state"] == "RUNNING"
 
 
 def test_a_held_service_takes_another_gain_table_at_bias_then_starts(service, other_table, control_socket,
@@ -225,51 +268,6 @@ def test_rearm_at_bias_after_a_fault_restarts_the_controller(service, control_so
     _, rows = read_telemetry(svc.telemetry)
     rearm = int(np.flatnonzero(rows[:, COL["operator_command"]])[0])
     assert np.all(rows[rearm:, COL["fault"]] == 0), "a fault came back after the re-arm"
-
-
-def _raw(path: Path, data: bytes, timeout_s: float = DEADLINE_S) -> dict:
-    """Send bytes as they are and read the one-line reply."""
-    with socket.socket(socket.AF_UNIX) as s:
-        s.settimeout(timeout_s)
-        s.connect(str(path))
-        s.sendall(data)
-        reply = b""
-        while not reply.endswith(b"\n"):
-            chunk = s.recv(65536)
-            assert chunk, f"the service closed the connection without a reply to {data[:40]!r}"
-            reply += chunk
-    return json.loads(reply)
-
-
-def test_malformed_requests_are_answered_and_the_service_keeps_serving(service, control_socket):
-    svc = service()
-    before = svc.wait_for("RUNNING", running)
-    with socket.socket(socket.AF_UNIX) as silent:
-        silent.settimeout(DEADLINE_S)
-        silent.connect(str(control_socket))         # connects and says nothing
-        for data, why in [
-            (b"stop now\n", "not JSON"),
-            (b"\xff\xfe{}\n", "not UTF-8"),
-            (b"[1, 2]\n", "not an object"),
-            (b'{"command": "explode"}\n', "unknown command 'explode'"),
-            (b'{"command": "stop", "table": "/x.yaml"}\n', "unexpected key 'table'"),
-            (b'{"command": "gains"}\n', 'needs "table"'),
-            (b'{"command": "gains", "table": "gains.yaml"}\n', "absolute path"),
-            (b"x" * (70 * 1024), "longer than 65536 bytes"),
-        ]:
-            reply = _raw(control_socket, data)
-            assert reply["ok"] is False and why in reply["message"], (data[:40], reply)
-            assert reply["status"]["state"] == "RUNNING", reply
-        # the silent client holds its connection: others are answered meanwhile
-        status = request(control_socket, {"command": "status"})["status"]
-        assert status["state"] == "RUNNING" and status["cycles"] > before["cycles"]
-        reply = silent.recv(65536)
-    answer = json.loads(reply)
-    assert answer["ok"] is False and "no complete request" in answer["message"], answer
-    assert request(control_socket, {"command": "stop"})["ok"]
-    assert svc.ended() == 0, svc.log
-    assert svc.commands() == [("stop", "STOPPING")], "a malformed request reached the control loop"
-    assert svc.log.count("control socket: refused a request") == 9, svc.log
 
 
 def test_without_a_service_ctl_says_so_in_one_line_and_exits_2(control_socket, capsys):
