@@ -2,14 +2,21 @@
 socket path of its own."""
 
 import shutil
+import sys
 import tempfile
 from pathlib import Path
 
 import pytest
 from hypothesis import settings
 
-import beamctl.tools  # noqa: F401  (single-threaded BLAS as beamctl runs it; before numpy loads)
-from beamctl.models import build_model, load_parameters, reduce
+# Compiled modules are cached (__pycache__, ignored by git) even where the environment asks
+# Python not to write them (PYTHONDONTWRITEBYTECODE): the suite starts some fifty Python processes
+# (services, commands, Dask and pool workers) that read the cache this process writes instead
+# of compiling beamctl's sources again each, and pytest keeps the test modules it rewrote.
+sys.dont_write_bytecode = False
+
+import beamctl.tools  # noqa: E402, F401  (single-threaded BLAS as beamctl runs it; before numpy loads)
+from beamctl.models import build_model, load_parameters, reduce  # noqa: E402
 
 # Property tests run the same examples on every machine and run (a failure is reproducible,
 # not a red CI one time in ten) and have no per-example deadline (a shared 2-core machine
