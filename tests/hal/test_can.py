@@ -134,7 +134,9 @@ def test_a_remote_frame_never_becomes_a_sample(pair):
     assert backend.status()["remote_frames"] == 1
 
 
-@settings(max_examples=300, deadline=None)
+# 100 payloads (hypothesis' default number): the receiver makes the one comparison of the CRC
+# byte whatever the payload, and each example waits 10 ms for the frame that must not come
+@settings(max_examples=100, deadline=None)
 @given(payload=st.binary(min_size=7, max_size=7), sequence=st.integers(1, 127))
 def test_a_payload_with_a_wrong_crc_never_reaches_the_law(payload, sequence):
     """Random bytes that decode inside the DBC ranges, with a sequence the receiver would take:
