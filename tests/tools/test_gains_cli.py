@@ -72,6 +72,8 @@ def test_mismatched_table_is_a_clean_error(tmp_path, capsys):
 
 # -- the robust check: a search for the worst rig -------------------------------------------------
 
+# every phase of the search on a budget of a few rigs each: the command's output, status and
+# worst-rig file are what these tests are about (the search's own are tests/gains/test_robust.py)
 SMALL_BOX = """box:
   parameters:
     beam.youngs_modulus: {factor: [0.95, 1.05]}
@@ -79,8 +81,8 @@ SMALL_BOX = """box:
   seed: 7
   population: 6
   generations: 1
-  margin: 8
-  refine: 8
+  margin: 4
+  refine: 4
   starts: 1
   verify: 1
 """
@@ -111,7 +113,7 @@ def test_the_robust_check_reports_the_worst_rig_it_found_as_json(robust_run):
                            "worst_rig_si", "verified", "box"}, sorted(robust)
     assert set(robust["worst_rig"]) == {"beam.youngs_modulus", "io.delay_samples"}
     assert robust["worst_ratio"] == pytest.approx(robust["onset_N"] / robust["critical_load_N"])
-    assert 6 * 2 <= robust["evaluated"] <= 6 * 2 + 8 + 8 + 1 + 1, robust["evaluated"]
+    assert 6 * 2 <= robust["evaluated"] <= 6 * 2 + 4 + 4 + 1 + 1, robust["evaluated"]
     # the paper's design loses rigs of this box below their own Fx,cr (README: a sample late, E x0.95)
     assert robust["worst_ratio"] < 1.0 and status == 1, (status, robust["worst_ratio"])
     assert "robust check:" in err and "100 %" in err, "no progress on stderr with --json"
