@@ -223,9 +223,10 @@ def test_unstable_table_is_written_only_when_forced_and_never_runs(tmp_path, pap
 
 
 def _rewritten(path, edit) -> None:
-    data = yaml.load(path.read_text(), Loader=yaml.SafeLoader)
+    # libyaml where it is installed: the same documents as the pure-Python reader and writer, faster
+    data = yaml.load(path.read_text(), Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
     edit(data)
-    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    path.write_text(yaml.dump(data, Dumper=getattr(yaml, "CSafeDumper", yaml.SafeDumper), sort_keys=False))
 
 
 def _scale_gain_at(load_n: float, factor: float):
