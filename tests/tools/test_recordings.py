@@ -200,11 +200,17 @@ def test_state_fault_and_flag_labels_name_the_codes(exported, fmt):
     assert bits["flags"] == FLAG_NAMES, f"{fmt}: flag bits"
 
 
+@pytest.fixture(scope="module")
+def paper_table_sha256() -> str:
+    """The hash the paper's table file records (read once: PyYAML takes a third of a second)."""
+    return yaml.safe_load(paper_table_path().read_text())["sha256"]
+
+
 @pytest.mark.parametrize("fmt", FORMATS)
-def test_sample_rate_table_hash_and_mode_are_carried(exported, fmt):
+def test_sample_rate_table_hash_and_mode_are_carried(exported, paper_table_sha256, fmt):
     properties = exported[fmt][1][4]
     assert float(properties["sample_rate_hz"]) == 2500.0, "the paper table's rate"
-    assert properties["gain_table_sha256"] == yaml.safe_load(paper_table_path().read_text())["sha256"]
+    assert properties["gain_table_sha256"] == paper_table_sha256
     assert properties["recording_mode"] == "full"
 
 
