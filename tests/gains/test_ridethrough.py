@@ -19,6 +19,11 @@ from beamctl.models.analysis import critical_load
 from beamctl.models.fe import plane_eigen, plane_indices
 from beamctl.models.modal import reduce
 
+# libyaml where it is installed: the same YAML documents as the pure-Python reader and writer
+# make, read and written ten times faster (a table of the small LQG is 140 kB of matrices)
+_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+_DUMPER = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
+
 
 @pytest.fixture(scope="module")
 def shipped():
@@ -113,7 +118,7 @@ def test_a_table_with_prediction_and_ride_through_reads_back_as_written(tmp_path
     np.testing.assert_array_equal(back.compensator.predict, small_lqg.compensator.predict)
     assert back.ride_through == small_lqg.ride_through
     assert back.intact and back.sha256 == small_lqg.sha256
-    data = yaml.safe_load(path.read_text())
+    data = yaml.load(path.read_text(), Loader=_LOADER)
     assert set(data["ride_through"]) == {
         "growth_limit", "margin", "max_gap_samples", "gap_limit_samples", "gap_load_N", "gap_cap_samples",
         "max_extra_delay_samples", "answer_budget_periods", "delay_load_N", "delay_step_samples",
@@ -136,18 +141,12 @@ def test_the_per_load_limits_read_back_one_per_grid_load(tmp_path, small_lqg, pa
     assert rt.max_gap_samples == min(rt.max_gap_samples_per_load)
     assert rt.answer_budget_periods == pytest.approx(delay + rt.max_extra_delay_samples / 2, rel=1e-15)
     path = write_table(small_lqg, tmp_path / "t.yaml")
-    data = yaml.safe_load(path.read_text())["ride_through"]
+    data = yaml.load(path.read_text(), Loader=_LOADER)["ride_through"]
     assert data["gap_limits_samples"] == list(rt.gap_limits_samples)
     assert data["answer_budgets_periods"] == list(rt.answer_budgets_periods)
     back = load_table(path, paper_params).ride_through
     for name in RideThrough.PER_LOAD:
         assert getattr(back, name) == getattr(rt, name), name
-
-
-# libyaml where it is installed: the same YAML documents as the pure-Python reader and writer
-# make, read and written ten times faster (a table of the small LQG is 140 kB of matrices)
-_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
-_DUMPER = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
 
 
 @pytest.fixture(scope="module")
