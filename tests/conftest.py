@@ -1,6 +1,7 @@
 """Shared fixtures: the paper's model is built once per test session; every test has a control
 socket path of its own."""
 
+import gc
 import shutil
 import sys
 import tempfile
@@ -14,6 +15,13 @@ from hypothesis import settings
 # (services, commands, Dask and pool workers) that read the cache this process writes instead
 # of compiling beamctl's sources again each, and pytest keeps the test modules it rewrote.
 sys.dont_write_bytecode = False
+
+# The cyclic garbage collector of this process runs less often: its full collections walk every
+# object the session holds (the modules of numpy, scipy, numba, matplotlib and dask, the tables,
+# the test items), a tenth of a second and more each, and the tests that read a gain table
+# allocate hundreds of thousands of objects. What the tests run is unchanged (a service's
+# real-time set-up disables the collector for its run anyway).
+gc.set_threshold(10000, 20, 20)
 
 import beamctl.tools  # noqa: E402, F401  (single-threaded BLAS as beamctl runs it; before numpy loads)
 from beamctl.models import build_model, load_parameters, reduce  # noqa: E402
