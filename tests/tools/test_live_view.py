@@ -125,10 +125,11 @@ def _page_of_a_service(tmp_path, *service_flags: str):
     monitor = beamctl("monitor", "--port", "0", cwd=tmp_path)
     service = browser = None
     try:
-        url = _url_of(monitor)
+        # the three start side by side (a second or two each); what the service sends before the
+        # monitor listens is dropped and counted, as whenever no viewer listens
         service = _service(tmp_path, tmp_path / "run.btl", None, *service_flags)
         browser = HeadlessChromium(BROWSER)
-        browser.open(url)
+        browser.open(_url_of(monitor))
         yield service, browser
     finally:
         if browser is not None:
@@ -192,9 +193,10 @@ def test_a_viewer_that_stalls_and_dies_never_holds_up_the_service(tmp_path, shor
     monitor = beamctl("monitor", "--port", "0", "--live", live, cwd=tmp_path)
     service = None
     try:
+        service = _service(tmp_path, telemetry, live)     # starting while the monitor starts
         _url_of(monitor)
-        service = _service(tmp_path, telemetry, live)
-        _records_reach(telemetry, 2500, service)   # a second of control: the monitor has been fed
+        # a second of control once the monitor listens: it has been fed
+        _records_reach(telemetry, _records(telemetry) + 2500, service)
         monitor.send_signal(signal.SIGSTOP)
         _records_reach(telemetry, _records(telemetry) + 2 * 2500, service)
         monitor.kill()
