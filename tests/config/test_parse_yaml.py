@@ -93,10 +93,12 @@ documents = st.dictionaries(st.from_regex(r"[a-z_][a-z0-9_]{0,8}", fullmatch=Tru
                             st.one_of(nested, numbers, st.text(max_size=20)), min_size=1, max_size=6)
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=100, deadline=None)
 @given(documents, st.sampled_from([True, None, False]), st.integers(min_value=40, max_value=200))
 def test_any_document_reads_the_same_as_by_yaml(doc, flow, width):
     """Random documents of nested numbers (NaN, infinities, huge integers, booleans, nulls) and
-    strings, written in flow, mixed or block style at any line width."""
+    strings, written in flow, mixed or block style at any line width (a hundred of them, as many
+    as hypothesis draws by default: the spellings that JSON and YAML read differently are each
+    tested on their own above)."""
     text = yaml.safe_dump(doc, default_flow_style=flow, width=width, sort_keys=False)
     assert _same(parse_yaml(text), _yaml(text)), text[:400]
