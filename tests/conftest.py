@@ -73,6 +73,27 @@ def other_table(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def compiled_engine():
+    """The control engine compiled into numba's cache (rt/engine.py, ``cache=True``) before a test
+    starts a service in a process of its own. In a fresh clone the first step of the first
+    controller compiles it, for seconds: in a service that happens inside its control loop,
+    which already reports RUNNING, so that an operator's command waits past the control
+    socket's time-out. Here it is compiled once in this process, and every service loads it."""
+    from beamctl.gains.defaults import paper_table_path
+    from beamctl.gains.table import load_table
+    from beamctl.hal.base import Sample
+    from beamctl.rt.config import controller_config
+    from beamctl.rt.controller import Controller
+
+    controller = Controller(load_table(paper_table_path()), controller_config({"pacing": "sample"}))
+    sample = Sample()
+    sample.axial_load = 1000.0
+    controller.arm(sample)
+    controller.start()
+    controller.step(sample)
+
+
+@pytest.fixture(scope="session")
 def _dask_cluster(tmp_path_factory):
     pytest.importorskip("distributed")
     from tests.tools.processes import DaskCluster

@@ -83,7 +83,7 @@ class Service:
 
 
 @pytest.fixture
-def service(tmp_path):
+def service(tmp_path, compiled_engine):
     """Starts ``beamctl run`` (``service(*flags, **sections)``); whatever is still running at the
     end of the test is killed."""
     started = []

@@ -140,7 +140,7 @@ def _page_of_a_service(tmp_path, *service_flags: str):
 
 @pytest.mark.skipif(BROWSER is None, reason=NO_BROWSER)
 def test_the_page_s_buttons_command_the_service_and_the_page_shows_its_values_as_they_change(
-        tmp_path, other_table):
+        tmp_path, other_table, compiled_engine):
     """A service started with --hold waits ARMED at bias. The page's Switch gains swaps the table
     there, and the page's title then names the table the service runs, not the one it started
     with; the page's Start runs it, and the values it shows change as the service runs (the
@@ -184,7 +184,7 @@ def test_the_page_s_buttons_command_the_service_and_the_page_shows_its_values_as
         out.decode(), err.decode())
 
 
-def test_a_viewer_that_stalls_and_dies_never_holds_up_the_service(tmp_path, short_dir):
+def test_a_viewer_that_stalls_and_dies_never_holds_up_the_service(tmp_path, short_dir, compiled_engine):
     """The monitor is stopped (SIGSTOP: its queue fills), then killed (its socket file stays):
     the service records on, then stops normally, every record written; the view's datagrams
     are dropped and counted."""

@@ -188,7 +188,7 @@ def test_json_prints_exactly_one_object_and_the_banner_goes_to_stderr(tmp_path, 
     assert captured.err.startswith("beamctl run: sim backend")
 
 
-def test_ctrl_c_is_the_operator_s_stop_and_exits_0(tmp_path):
+def test_ctrl_c_is_the_operator_s_stop_and_exits_0(tmp_path, compiled_engine):
     """For the service SIGINT is a normal stop: ramp to bias, flush telemetry, exit 0."""
     tel = tmp_path / "run.btl"
     cfg = _config(tmp_path, **{**SIM, "hal": {"backend": "sim", "sim": {"pace": "wallclock"}},
