@@ -272,7 +272,7 @@ ALLOCATION_CASES = [("scale", 0.0), ("scale", 1e-4), ("clip", 1e-4)]
 
 
 @pytest.fixture(scope="module")
-def allocation_probes(tmp_path_factory) -> dict:
+def allocation_probes(tmp_path_factory, compiled_engine) -> dict:
     """{(allocation, offset): the probe's figures} for every case, from one fresh interpreter."""
     out = subprocess.run([sys.executable, "-c", _ALLOCATION_PROBE, json.dumps(ALLOCATION_CASES)],
                          capture_output=True, text=True, cwd=tmp_path_factory.mktemp("probe"), timeout=120,

@@ -51,7 +51,7 @@ def _service_config(tmp_path, channel: str, **controller) -> str:
     return str(path)
 
 
-def test_a_controller_killed_with_sigkill_leaves_the_daq_ramping_to_bias(tmp_path, channel):
+def test_a_controller_killed_with_sigkill_leaves_the_daq_ramping_to_bias(tmp_path, channel, compiled_engine):
     """The controller process answers the DAQ's samples, then dies without a word: the DAQ holds
     its last voltages for the DBC's silence time-out (20 ms) after the last valid voltage frame,
     then ramps linearly to bias within its fallback ramp (here 0.2 s), once, and stays there.
