@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 from hypothesis import settings
+from threadpoolctl import threadpool_limits
 
 # Compiled modules are cached (__pycache__, ignored by git) even where the environment asks
 # Python not to write them (PYTHONDONTWRITEBYTECODE): the suite starts some fifty Python processes
@@ -25,6 +26,13 @@ gc.set_threshold(10000, 20, 20)
 
 import beamctl.tools  # noqa: E402, F401  (single-threaded BLAS as beamctl runs it; before numpy loads)
 from beamctl.models import build_model, load_parameters, reduce  # noqa: E402
+
+# One BLAS thread, as beamctl runs (beamctl.common): pytest-randomly imports numpy before this file
+# runs, and numpy's OpenBLAS then starts with a thread a core, which beamctl's environment setting
+# comes too late to prevent. Two BLAS threads on this 2-core machine make every eigenvalue and
+# matrix exponential of the gain and robustness tests two to three times slower in wall time
+# when another process keeps a core busy.
+_ONE_BLAS_THREAD = threadpool_limits(1)
 
 # Property tests run the same examples on every machine and run (a failure is reproducible,
 # not a red CI one time in ten) and have no per-example deadline (a shared 2-core machine
