@@ -2,44 +2,16 @@
 ``RECORD_COLUMNS`` and the ``I_*`` indices, is the engine's: rt/engine.py), and what a reader
 needs to understand it: each column's unit, the labels of the coded columns (state, fault, the
 operator's commands) and of the flag bits, the flags that trigger a recording's window, and the
-settings a recording is read with (``controller_meta``). The law's input vector is not read
-from these columns by name: the engine keeps its own indices (``SIGNAL_COLUMNS``).
+settings a recording is read with (``controller_meta``). The layout's names (``COL``, ``I_*``,
+``FLAG_*``) are imported from rt/engine.py (rt/controller.py re-exports them for readers). The
+law's input vector is not read from these columns by name: the engine keeps its own indices
+(``SIGNAL_COLUMNS``).
 """
 
 from __future__ import annotations
 
 from beamctl.rt.config import settings_by_key
-from beamctl.rt.engine import (  # noqa: F401 (the record's layout, re-exported for its readers)
-    COL,
-    FLAG_BRIDGED,
-    FLAG_FADING_IN,
-    FLAG_INTEGRATOR_HELD,
-    FLAG_LOAD_OUT_OF_TABLE,
-    FLAG_NAMES,
-    FLAG_NO_NEW_SAMPLE,
-    FLAG_RAMPING_TO_BIAS,
-    FLAG_SATURATED_A,
-    FLAG_SATURATED_B,
-    I_ANSWER_AGE_US,
-    I_BRIDGED,
-    I_FAULT,
-    I_FLAGS,
-    I_INPUT_PERIOD_US,
-    I_LATE_ANSWERS,
-    I_LOAD,
-    I_LOAD_FILTERED,
-    I_OPERATOR_COMMAND,
-    I_SCALE_A,
-    I_SCALE_B,
-    I_SEQUENCE,
-    I_SIGNALS,
-    I_STATE,
-    I_STEP_US,
-    I_TIME,
-    N_COLUMNS,
-    RECORD_COLUMNS,
-    SIGNAL_COLUMNS,
-)
+from beamctl.rt.engine import FLAG_NAMES, FLAG_SATURATED_A, FLAG_SATURATED_B, RECORD_COLUMNS  # noqa: F401
 from beamctl.rt.safety import Fault, State
 
 # the flags that start a triggered recording's window (with any change of a coded column)
