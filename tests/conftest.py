@@ -58,14 +58,22 @@ def paper_reduced(paper_model):
 
 
 @pytest.fixture(autouse=True)
-def control_socket(monkeypatch):
-    """A control socket path of the test's own (short: a UNIX socket's path holds 107 bytes), so
-    that a service a test starts, in process or not, never meets another test's."""
-    directory = tempfile.mkdtemp(prefix="bc-", dir="/tmp" if Path("/tmp").is_dir() else None)
-    path = Path(directory) / "control.sock"
-    monkeypatch.setenv("BEAMCTL_CONTROL_SOCKET", str(path))
-    yield path
+def short_dir(monkeypatch):
+    """A directory of the test's own with a short path (a UNIX socket's path holds 107 bytes; a
+    test's tmp_path under pytest-xdist is longer than that leaves room for): the control socket
+    and the local bus's sockets live there, so that a service or bus a test starts, in process or
+    not, never meets another test's, in this process or in another worker."""
+    directory = Path(tempfile.mkdtemp(prefix="bc-", dir="/tmp" if Path("/tmp").is_dir() else None))
+    monkeypatch.setenv("BEAMCTL_CONTROL_SOCKET", str(directory / "control.sock"))
+    monkeypatch.setenv("BEAMCTL_LOCALBUS_DIR", str(directory / "bus"))
+    yield directory
     shutil.rmtree(directory, ignore_errors=True)
+
+
+@pytest.fixture
+def control_socket(short_dir):
+    """The control socket path of this test ($BEAMCTL_CONTROL_SOCKET)."""
+    return short_dir / "control.sock"
 
 
 @pytest.fixture(scope="session")

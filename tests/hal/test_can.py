@@ -18,7 +18,6 @@ from beamctl.hal.budget import bus_budget, check_budget, classic_frame_bits, fd_
 from beamctl.hal.can_backend import CanBackend
 from beamctl.hal.dbc import MESSAGES, Contract, default_dbc_path
 from beamctl.hal.e2e import crc8_sae_j1850, frame_crc
-from beamctl.hal.localbus import BASE_DIR_ENV
 from tests.hal.reference import reference_frame_crc
 
 CONTRACT = Contract()
@@ -624,10 +623,9 @@ def _run_batches(interface: str, channel: str):
     return raw, samples, answers, status
 
 
-def test_the_raw_path_of_the_local_bus_and_the_message_path_agree(tmp_path, monkeypatch):
+def test_the_raw_path_of_the_local_bus_and_the_message_path_agree():
     """The same frames, good and bad, over python-can's virtual bus (Message path) and the local
     bus (raw path): the same samples, answers and counters."""
-    monkeypatch.setenv(BASE_DIR_ENV, str(tmp_path / "bus"))
     raw_v, samples_v, answers_v, status_v = _run_batches("virtual", "raw-vs-message")
     raw_l, samples_l, answers_l, status_l = _run_batches("beamctl_local", "raw-vs-message")
     assert (raw_v, raw_l) == (False, True), "the local bus takes the raw path, the virtual bus Messages"

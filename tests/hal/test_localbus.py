@@ -67,9 +67,9 @@ FRAMES = {
 
 
 @pytest.fixture
-def base_dir(tmp_path, monkeypatch):
+def base_dir(short_dir, monkeypatch):
     """The base directory of this test's buses (and of its child processes')."""
-    base = tmp_path / "b"
+    base = short_dir / "b"
     monkeypatch.setenv(BASE_DIR_ENV, str(base))
     return base
 

@@ -1,10 +1,8 @@
 """The live view's publisher: what it keeps of the records, and that it never waits for a viewer."""
 
 import os
-import shutil
 import socket
 import struct
-import tempfile
 import threading
 
 import numpy as np
@@ -15,15 +13,6 @@ from beamctl.rt.telemetry import TelemetryWriter, read_telemetry
 
 COLUMNS = ["time_s", "index", "flags", "load_N"]
 RATE_HZ = 2500.0
-
-
-@pytest.fixture
-def short_dir():
-    """A directory with a short path: a UNIX socket path holds at most 107 bytes, and pytest's
-    tmp_path can be longer."""
-    path = tempfile.mkdtemp(prefix="bl", dir="/tmp")
-    yield path
-    shutil.rmtree(path, ignore_errors=True)
 
 
 @pytest.fixture

@@ -29,9 +29,9 @@ RAMP_S = 0.1                 # the controller's ramp to bias (a setting, not a r
 
 
 @pytest.fixture
-def channel(tmp_path, monkeypatch, request):
-    """A local-bus channel of the test's own, in a base directory the child processes share."""
-    monkeypatch.setenv("BEAMCTL_LOCALBUS_DIR", str(tmp_path / "bus"))
+def channel(request):
+    """A local-bus channel of the test's own, in the test's base directory that the child processes
+    share ($BEAMCTL_LOCALBUS_DIR, set by tests/conftest.py)."""
     return f"c{abs(hash(request.node.name)) % 10**8}"
 
 

@@ -6,11 +6,9 @@ import contextlib
 import json
 import os
 import select
-import shutil
 import signal
 import socket
 import subprocess
-import tempfile
 import threading
 import time
 
@@ -40,14 +38,6 @@ SERVICE = {"gains": {"table": str(paper_table_path())},
            "plant": {"load": {"start": 500.0, "end": 3000.0, "rate": LOAD_RATE_N_PER_S},
                      "bow": {"amplitude": 5e-5, "angle_deg": 234.0},
                      "noise": {"strain": 2e-7, "load": 0.0, "seed": 1}}}
-
-
-@pytest.fixture
-def short_dir():
-    """A directory with a short path (a UNIX socket path holds at most 107 bytes)."""
-    path = tempfile.mkdtemp(prefix="bv", dir="/tmp")
-    yield path
-    shutil.rmtree(path, ignore_errors=True)
 
 
 def _service(tmp_path, telemetry, live: str | None, *flags: str) -> subprocess.Popen:

@@ -3,9 +3,7 @@
 import http.client
 import json
 import os
-import shutil
 import socket
-import tempfile
 import urllib.parse
 
 import numpy as np
@@ -17,14 +15,6 @@ from beamctl.tools.cli import main
 
 COLUMNS = ["time_s", "sequence", "state", "fault", "flags", "load_N", "not_for_the_page"]
 RATE_HZ = 2500.0
-
-
-@pytest.fixture
-def short_dir():
-    """A directory with a short path (a UNIX socket path holds at most 107 bytes)."""
-    path = tempfile.mkdtemp(prefix="bm", dir="/tmp")
-    yield path
-    shutil.rmtree(path, ignore_errors=True)
 
 
 @pytest.fixture
