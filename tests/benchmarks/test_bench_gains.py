@@ -1,4 +1,4 @@
-"""Benchmarks of the gain schedule (``pytest tests/benchmarks --benchmark-enable``)."""
+"""Benchmarks of the gain schedule (``pytest tests/benchmarks --benchmark-enable -n 0``)."""
 
 import itertools
 from dataclasses import replace

@@ -1,4 +1,4 @@
-"""Benchmarks of the model (run with ``pytest tests/benchmarks --benchmark-enable``)."""
+"""Benchmarks of the model (run with ``pytest tests/benchmarks --benchmark-enable -n 0``)."""
 
 from beamctl.models import build_model, critical_load, load_parameters
 

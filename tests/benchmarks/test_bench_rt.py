@@ -1,4 +1,4 @@
-"""Benchmark of the whole control step (``pytest tests/benchmarks --benchmark-enable``)."""
+"""Benchmark of the whole control step (``pytest tests/benchmarks --benchmark-enable -n 0``)."""
 
 import itertools
 
