@@ -112,7 +112,7 @@ def compiled_engine():
 @pytest.fixture(scope="session")
 def _dask_cluster(tmp_path_factory):
     pytest.importorskip("distributed")
-    from tests.tools.processes import DaskCluster
+    from tests.processes import DaskCluster
 
     cluster = DaskCluster(tmp_path_factory.mktemp("dask"))
     yield cluster
@@ -122,7 +122,7 @@ def _dask_cluster(tmp_path_factory):
 @pytest.fixture
 def dask_cluster(_dask_cluster):
     """A Dask scheduler and two workers, each a process of its own on 127.0.0.1
-    (tests/tools/processes.py), shared by the tests: starting the processes and importing
+    (tests/processes.py), shared by the tests: starting the processes and importing
     beamctl, scipy and numba in each worker costs seconds every time. A worker that a test
     killed is replaced by a new one before the next test gets the cluster."""
     _dask_cluster.revive()

@@ -21,7 +21,7 @@ from beamctl.rt.controller import FLAG_NO_NEW_SAMPLE, I_FLAGS, Controller
 from beamctl.rt.loop import ControlLoop
 from beamctl.rt.safety import Fault
 from tests.hal.rigs import GEOMETRY, TABLE, RigBackend, RigClock, make_plant, shipped_limits, wait_until
-from tests.tools.processes import beamctl
+from tests.processes import beamctl
 
 BIAS = 75.0
 RATE = TABLE.design.sample_rate_hz

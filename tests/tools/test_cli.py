@@ -12,7 +12,7 @@ import yaml
 
 from beamctl.tools import experiment_cmd, gains_cmd, log_cmd, model_cmd, run_cmd
 from beamctl.tools.cli import main
-from tests.tools.processes import beamctl, interrupt_when
+from tests.processes import beamctl, interrupt_when
 
 # the paper's design (integral LQR, 2500 Hz) builds in seconds; the robust check is left out
 PAPER_BUILD = ("gains", "build", "--design", "integral-lqr", "--no-robust")

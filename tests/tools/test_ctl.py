@@ -21,7 +21,7 @@ from beamctl.rt.telemetry import read_telemetry
 from beamctl.service import control
 from beamctl.service.control import ControlError, default_socket_path, request
 from beamctl.tools.cli import main
-from tests.tools.processes import beamctl
+from tests.processes import beamctl
 
 DEADLINE_S = 60.0       # for a state to be reached, on a slow shared machine
 V = slice(COL["voltage_a1_V"], COL["voltage_a1_V"] + 6)

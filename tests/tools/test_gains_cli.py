@@ -141,7 +141,7 @@ def test_the_worst_rig_is_written_as_a_scenario_of_the_experiment(robust_run):
 
 
 def test_ctrl_c_ends_the_robust_check_with_130_and_no_traceback(tmp_path, other_table):
-    from .processes import beamctl, interrupt_when
+    from tests.processes import beamctl, interrupt_when
 
     box = tmp_path / "box.yaml"
     box.write_text(SMALL_BOX.replace("generations: 1", "generations: 50"))

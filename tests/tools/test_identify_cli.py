@@ -11,9 +11,8 @@ from beamctl.identification.frf_files import read_frf
 from beamctl.models import build_model, critical_load
 from beamctl.service.setup import load_model_file, service_config
 from beamctl.tools.cli import main
-
-from .processes import beamctl, interrupt_when
-from .test_identify import RIG
+from tests.identification.test_identify import RIG
+from tests.processes import beamctl, interrupt_when
 
 # a short identification: 3 averaged periods of 0.5 s per input
 SHORT = ("--load", "2000", "--averages", "3", "--resolution", "2")

@@ -17,7 +17,7 @@ from beamctl.rt.controller import COL
 from beamctl.rt.telemetry import TelemetryError, read_telemetry
 from beamctl.tools.cli import main
 from tests.hal.rigs import GEOMETRY, make_plant, service_backends, wait_until
-from tests.tools.processes import beamctl
+from tests.processes import beamctl
 
 # the paper's design (integral LQR, 2500 Hz) builds in seconds; the robust check is left out
 PAPER_BUILD = ("gains", "build", "--design", "integral-lqr", "--no-robust")

@@ -27,7 +27,7 @@ from beamctl.simulation.experiment import (
 from beamctl.tools import experiment_cmd
 from beamctl.tools.cli import main
 from beamctl.tools.experiment_cmd import REPORT_FILES
-from tests.tools.processes import beamctl, interrupt_when
+from tests.processes import beamctl, interrupt_when
 
 CRITICAL_LOAD_N = 3193.5
 FAST_RAMP = {"start": 260.0, "end": 3400.0, "rate": 200.0, "hold": 0.2}

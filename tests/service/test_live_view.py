@@ -21,8 +21,8 @@ from beamctl.rt.live import decode
 from beamctl.rt.safety import State
 from beamctl.rt.telemetry import TelemetryError, read_telemetry
 from beamctl.tools.cli import main
-from tests.tools.browser import HeadlessChromium, find_browser
-from tests.tools.processes import beamctl
+from tests.processes import beamctl
+from tests.service.browser import HeadlessChromium, find_browser
 
 DEADLINE_S = 60.0
 LOAD_RATE_N_PER_S = 10.0
