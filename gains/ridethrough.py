@@ -573,16 +573,16 @@ class _DelayedPlant:
 
     def __init__(self, rig: RigPlane, load_n: float, step: float) -> None:
         self.a, self.b, self.c = rig.continuous(load_n)
-        self.period = rig.period_s
+        self.period_s = rig.period_s
         self.step = step
-        self.ad, self.g_full = _gamma(self.a, self.b, self.period)
+        self.ad, self.g_full = _gamma(self.a, self.b, self.period_s)
         self._grid: list[tuple[np.ndarray, np.ndarray]] | None = None
         self._rest: dict[float, np.ndarray] = {}
 
     def _gamma_at(self, u: float) -> np.ndarray:
         """Gamma(u T), 0 < u < 1."""
         if self._grid is None:
-            e_h, g_h = _gamma(self.a, self.b, self.step * self.period)
+            e_h, g_h = _gamma(self.a, self.b, self.step * self.period_s)
             e, g = np.eye(self.a.shape[0]), np.zeros_like(self.b)
             self._grid = [(e, g)]
             for _ in range(int(round(1.0 / self.step))):
@@ -594,7 +594,7 @@ class _DelayedPlant:
         if rest <= 1e-12:
             return g
         if rest not in self._rest:
-            self._rest[rest] = _gamma(self.a, self.b, rest * self.period)[1]
+            self._rest[rest] = _gamma(self.a, self.b, rest * self.period_s)[1]
         return g + e @ self._rest[rest]
 
     def sampled(self, delay_samples: float) -> tuple[DelayedZOH, np.ndarray]:

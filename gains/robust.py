@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from beamctl.config.schema import ConfigError, dotted_get, dotted_update, read_yaml
+from beamctl.config.schema import ConfigError, dotted_get, dotted_update, read_yaml, refuse_renamed
 from beamctl.gains.rig import RigPlane
 from beamctl.gains.schedule import GainSchedule
 from beamctl.gains.table import GainTable
@@ -116,9 +116,9 @@ class Box:
                 "population": self.population, "generations": self.generations, "margin": self.margin,
                 "refine": self.refine,
                 "starts": self.starts, "strategy": self.strategy, "verify": self.verify,
-                "search_step_N": self.search_step_n,
-                "resolution_N": self.resolution_n, "max_step_N": self.max_step_n,
-                "fine_step_N": self.fine_step_n, "fine_band": self.fine_band}
+                "search_step_n": self.search_step_n,
+                "resolution_n": self.resolution_n, "max_step_n": self.max_step_n,
+                "fine_step_n": self.fine_step_n, "fine_band": self.fine_band}
 
 
 DEFAULT_BOX = Box(parameters={
@@ -161,14 +161,17 @@ _INTEGERS = {"seed": (1, 0, 2**32 - 1), "population": (40, 5, 10_000), "generati
              "margin": (800, 0, 100_000), "refine": (400, 0, 100_000), "starts": (4, 1, 100),
              "verify": (4, 1, 100)}
 STRATEGIES = ("rand1bin", "best1bin", "randtobest1bin", "currenttobest1bin", "best2bin", "rand2bin")
-_LOADS = {"search_step_N": (200.0, 1.0, 500.0), "resolution_N": (1.0, 0.01, 50.0),
-          "max_step_N": (50.0, 1.0, 50.0), "fine_step_N": (10.0, 0.01, 1e9), "fine_band": (0.04, 0.0, 1.0)}
+_LOADS = {"search_step_n": (200.0, 1.0, 500.0), "resolution_n": (1.0, 0.01, 50.0),
+          "max_step_n": (50.0, 1.0, 50.0), "fine_step_n": (10.0, 0.01, 1e9), "fine_band": (0.04, 0.0, 1.0)}
+# the loads' keys as box files spelled them before they were written as the study file's are
+_RENAMED = {f"{key[:-2]}_N": key for key in _LOADS if key.endswith("_n")}
 
 
 def box_from_dict(data: Any, params: ModelParameters, source: str = "") -> Box:
     """Validate a box mapping (the ``box:`` section of a file)."""
     if not isinstance(data, Mapping):
         raise ConfigError("box", data, "a mapping with parameters (and the search's settings)", source)
+    refuse_renamed(data, _RENAMED, source, "box.")
     known = {"parameters", "strategy", *_INTEGERS, *_LOADS}
     unknown = sorted(set(data) - known)
     if unknown:
@@ -223,9 +226,9 @@ def box_from_dict(data: Any, params: ModelParameters, source: str = "") -> Box:
     return Box(parameters=ranges, seed=settings["seed"], population=settings["population"],
                generations=settings["generations"], margin=settings["margin"], refine=settings["refine"],
                starts=settings["starts"],
-               strategy=strategy, verify=settings["verify"], search_step_n=settings["search_step_N"],
-               resolution_n=settings["resolution_N"], max_step_n=settings["max_step_N"],
-               fine_step_n=settings["fine_step_N"], fine_band=settings["fine_band"])
+               strategy=strategy, verify=settings["verify"], search_step_n=settings["search_step_n"],
+               resolution_n=settings["resolution_n"], max_step_n=settings["max_step_n"],
+               fine_step_n=settings["fine_step_n"], fine_band=settings["fine_band"])
 
 
 def load_box(path: str, params: ModelParameters) -> Box:

@@ -75,7 +75,7 @@ class HalBase(abc.ABC):
         if not sample_rate_hz > 0:
             raise HalConfigurationError(f"sample rate must be positive, got {sample_rate_hz!r}")
         self.sample_rate_hz = float(sample_rate_hz)
-        self.sample_period_s = 1.0 / self.sample_rate_hz
+        self.period_s = 1.0 / self.sample_rate_hz
         self.is_open = False
         self.reads = 0
         self.writes = 0
@@ -129,7 +129,7 @@ class HalBase(abc.ABC):
         nothing arrives within ``timeout`` seconds (None: ten sample periods)."""
         if not self.is_open:
             raise HalConnectionLost(f"{self.name}: read on a closed backend")
-        wait = 10 * self.sample_period_s if timeout is None else timeout
+        wait = 10 * self.period_s if timeout is None else timeout
         if not self._read(self._sample, wait):
             raise HalStaleData(f"{self.name}: no sample within {wait * 1e3:.1f} ms")
         self.reads += 1

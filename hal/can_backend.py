@@ -161,10 +161,10 @@ class CanBackend(HalBase):
         self._sample.strains = fs[f.F_STRAINS:f.F_STRAINS + len(STRAIN_SIGNALS)]
         try:
             self._sequence = AliveCounter(
-                c.strains.sequence_modulus, self.sample_period_s,
+                c.strains.sequence_modulus, self.period_s,
                 state=(ks[f.K_SEQUENCE:f.K_SEQUENCE + f.A_INTS], fs[f.F_SEQUENCE:f.F_SEQUENCE + f.A_FLOATS]))
             self._load_sequence = AliveCounter(
-                c.load.sequence_modulus, c.load.divisor * self.sample_period_s,
+                c.load.sequence_modulus, c.load.divisor * self.period_s,
                 state=(ks[f.K_LOAD_SEQUENCE:f.K_LOAD_SEQUENCE + f.A_INTS],
                        fs[f.F_LOAD_SEQUENCE:f.F_LOAD_SEQUENCE + f.A_FLOATS]))
         except ValueError as exc:
@@ -272,7 +272,7 @@ class CanBackend(HalBase):
                     sample.axial_load = load
                     if sample is not self._sample:
                         sample.strains[:] = self._sample.strains
-                    self._due = time.monotonic() + self.sample_period_s
+                    self._due = time.monotonic() + self.period_s
                     return True
                 if code:
                     self._refuse(code)
@@ -288,7 +288,7 @@ class CanBackend(HalBase):
                     return False
                 continue
             if self._take(msg, sample):
-                self._due = time.monotonic() + self.sample_period_s
+                self._due = time.monotonic() + self.period_s
                 return True
 
     def _discard_backlog(self) -> int:

@@ -62,10 +62,10 @@ class CanPlantEmulator:
             raise ValueError(f"silence time-out {self.silence_timeout_s!r} s: the DAQ must fall back "
                              f"after a positive time without valid voltage frames")
         self.on_step = on_step
-        self.period_s = plant.config.sample_period
+        self.period_s = plant.config.period_s
         self._force_matrix = geometry.force_matrix()
-        self._voltages = np.full(6, geometry.bias_voltage)
-        self._bias = np.full(6, geometry.bias_voltage)
+        self._voltages = np.full(6, geometry.bias_voltage_v)
+        self._bias = np.full(6, geometry.bias_voltage_v)
         self._fallback_from = self._bias.copy()
         self._decoded = [0.0] * len(c.voltages.names)
         self._voltage_order = c.voltages.order(VOLTAGE_SIGNALS)

@@ -30,7 +30,7 @@ class SimBackend(HalBase):
         self.geometry = geometry
         self.pace = pace
         self._force_matrix = geometry.force_matrix()
-        self._bias = np.full(6, geometry.bias_voltage)
+        self._bias = np.full(6, geometry.bias_voltage_v)
         self._delta = np.zeros(6)
         self._forces = np.zeros(4)
         self._sequence = 0

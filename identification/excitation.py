@@ -40,12 +40,12 @@ class Excitation:
     sample_rate_hz: float
 
     @property
-    def period(self) -> int:
+    def period_samples(self) -> int:
         return len(self.values)
 
     @property
     def resolution_hz(self) -> float:
-        return self.sample_rate_hz / self.period
+        return self.sample_rate_hz / self.period_samples
 
 
 def periodic_signal(kind: str, sample_rate_hz: float, band_hz: tuple[float, float],

@@ -113,7 +113,7 @@ class Recording:
     forces and the excitation's force along that input, one row per excitation sample."""
 
     inputs: tuple[int, ...]
-    period: int
+    period_samples: int
     periods: int                        # per input, the transient ones included
     transient: int                      # periods dropped at the start of each input
     strains: np.ndarray                 # [n x 4]
@@ -135,10 +135,10 @@ def check_settings(s: IdentifySettings, cfg: ServiceConfig, sample_rate_hz: floa
                           f"at least {MIN_AVERAGES} periods to average (with fewer, the coherence of pure "
                           f"noise is 1 / averages >= 0.5, and tells measured from noise no more)")
     a = cfg.controller.actuators
-    room = min(a.bias_voltage - a.min_voltage_v, a.max_voltage_v - a.bias_voltage)
+    room = min(a.bias_voltage_v - a.min_voltage_v, a.max_voltage_v - a.bias_voltage_v)
     if not 0 < s.amplitude_v <= room:
         raise ConfigError("--amplitude", s.amplitude_v,
-                          f"a stack swing in V, > 0 and at most {room:g} V (bias {a.bias_voltage:g} V "
+                          f"a stack swing in V, > 0 and at most {room:g} V (bias {a.bias_voltage_v:g} V "
                           f"within the limits {a.min_voltage_v:g}..{a.max_voltage_v:g} V)")
     if not 0 < s.max_strain:
         raise ConfigError("--max-strain", s.max_strain, "a strain amplitude > 0")
@@ -318,8 +318,8 @@ def record(cfg: ServiceConfig, table: GainTable, s: IdentifySettings, progress=N
     if controller.excitation_index < n:
         raise IdentificationError(f"the run ended after {controller.excitation_index} of {n} excitation "
                                   f"samples ({result.reason or result.state})")
-    return Recording(inputs=inputs, period=period, periods=periods, transient=transient, strains=strains,
-                     forces=forces, reference=reference, loads_n=loads)
+    return Recording(inputs=inputs, period_samples=period, periods=periods, transient=transient,
+                     strains=strains, forces=forces, reference=reference, loads_n=loads)
 
 
 def _samples_missed(loop: ControlLoop) -> int:
@@ -332,7 +332,7 @@ def estimate(rec: Recording, sample_rate_hz: float, band_hz: tuple[float, float]
              closed_loop: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(frequencies [nf], H [nf x 4 x 4], coherence [nf x 4 x 4]) from a recording, at the
     lines of the period within the band (see the module docstring)."""
-    p = rec.period
+    p = rec.period_samples
     per_input = rec.periods * p
     freqs = np.fft.rfftfreq(p, 1.0 / sample_rate_hz)
     keep = excited_lines(p, sample_rate_hz, band_hz)
@@ -375,11 +375,11 @@ def identify(cfg: ServiceConfig, table: GainTable, s: IdentifySettings, progress
     io = plant_settings(cfg, table).io if cfg.hal.backend == "sim" else table.design.io
     settings = {"identify": s.to_dict(), "backend": cfg.hal.backend, "config": cfg.source,
                 "gain_table": str(cfg.table_path), "inputs": input_names(rec.inputs),
-                "period_samples": rec.period, "resolution_hz": rate / rec.period,
-                "bias_voltage_v": a.bias_voltage, "orientation_deg": list(a.orientation_deg),
+                "period_samples": rec.period_samples, "resolution_hz": rate / rec.period_samples,
+                "bias_voltage_v": a.bias_voltage_v, "orientation_deg": list(a.orientation_deg),
                 "transient_periods": rec.transient}
     data = FrfData(frequencies_hz=freqs, frf=frf, coherence=coherence, load_n=float(np.mean(rec.loads_n)),
-                   sample_rate_hz=rate, force_constant_n_per_v=a.force_constant, io=io.to_dict(),
+                   sample_rate_hz=rate, force_constant_n_per_v=a.force_constant_n_per_v, io=io.to_dict(),
                    settings=settings)
     report = {"wall_s": time.perf_counter() - start, "rig_s": len(rec.loads_n) / rate,
               "samples": len(rec.loads_n), "transient_periods": rec.transient,

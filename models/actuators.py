@@ -16,7 +16,7 @@ STACKS = 3
 @dataclass(frozen=True)
 class StackGeometry:
     force_constant_n_per_v: float
-    bias_voltage: float                   # V
+    bias_voltage_v: float
     orientation_deg: tuple[float, float]  # stack 1 at supports A and B, from +y towards +z
 
     def axes(self) -> np.ndarray:
@@ -26,7 +26,7 @@ class StackGeometry:
 
     def forces(self, voltages: np.ndarray) -> np.ndarray:
         """Lateral forces (Fay,A, Faz,A, Fay,B, Faz,B) in N of six stack voltages."""
-        volts = np.asarray(voltages, dtype=float).reshape(2, STACKS) - self.bias_voltage
+        volts = np.asarray(voltages, dtype=float).reshape(2, STACKS) - self.bias_voltage_v
         f = self.force_constant_n_per_v * volts
         return np.einsum("si,sid->sd", f, self.axes()).reshape(4)
 

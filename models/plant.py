@@ -186,7 +186,7 @@ class PlantConfig:
     io: IOChain = field(default_factory=IOChain)
 
     @property
-    def sample_period(self) -> float:
+    def period_s(self) -> float:
         return 1.0 / self.sample_rate_hz
 
 
@@ -264,7 +264,7 @@ class Plant:
     def __init__(self, model: FEModel, config: PlantConfig) -> None:
         self.model = model
         self.config = config
-        self.sample_period = config.sample_period
+        self.period_s = config.period_s
         e_y, e_z = config.eccentricity.components()
         ecc = eccentricity_moments(model, e_y, e_z)
         bow_y, bow_z = config.bow.components()
@@ -375,7 +375,7 @@ class Plant:
         forces, Fx undelayed."""
         a, b, _, _ = self.augmented(axial_load)
         self.discretisations += 1
-        return delayed_zoh(a, b[:, :N_FORCES], self.sample_period, self.config.io.delay_samples,
+        return delayed_zoh(a, b[:, :N_FORCES], self.period_s, self.config.io.delay_samples,
                            b_direct=b[:, N_FORCES:])
 
     def _digest(self) -> str:
@@ -384,7 +384,7 @@ class Plant:
         h = hashlib.sha256()
         for m in (self._k_elastic, self._k_geometric, self._damping, self._input, self._strain):
             h.update(np.ascontiguousarray(m).tobytes())
-        h.update(repr((self.config.io.to_dict(), self.sample_period, self.config.load_tolerance)).encode())
+        h.update(repr((self.config.io.to_dict(), self.period_s, self.config.load_tolerance)).encode())
         return h.hexdigest()
 
     def _cell_matrices(self, index: int) -> tuple[np.ndarray, np.ndarray]:
@@ -464,7 +464,7 @@ class Plant:
         np.dot(self._bd, inputs, out=self._forced)
         self._next += self._forced
         self._state, self._next = self._next, self._state
-        self.time += self.sample_period
+        self.time += self.period_s
         self.axial_load = self.config.load.load_at(self.time)
         self._use_load(self.axial_load)
 
@@ -536,7 +536,7 @@ class Plant:
         freqs = np.asarray(freqs_hz, dtype=float)
         zoh = self.discretise(axial_load)
         _, _, c, d = self.augmented(axial_load)
-        z = np.exp(2j * np.pi * freqs * self.sample_period)
+        z = np.exp(2j * np.pi * freqs * self.period_s)
         shift = z[:, None, None] ** (-zoh.whole)
         # the feedthrough acts with the input held before the sampling instant (``measure``)
         direct = d[None, :, :N_FORCES] * (shift / z[:, None, None]) if np.any(d[:, :N_FORCES]) else 0.0

@@ -35,7 +35,8 @@ from beamctl.rt.engine import SPAN_ROUNDING
 
 def geometry(actuators: Actuators) -> StackGeometry:
     """The stack geometry the controller believes in."""
-    return StackGeometry(force_constant_n_per_v=actuators.force_constant, bias_voltage=actuators.bias_voltage,
+    return StackGeometry(force_constant_n_per_v=actuators.force_constant_n_per_v,
+                         bias_voltage_v=actuators.bias_voltage_v,
                          orientation_deg=tuple(actuators.orientation_deg))
 
 
@@ -56,7 +57,7 @@ class Allocator:
             raise ValueError(f"allocation mode {mode!r}: expected one of {', '.join(ALLOCATION_MODES)}")
         self.mode = mode
         self._clip = mode == "clip"
-        self.bias_voltage_v = actuators.bias_voltage
+        self.bias_voltage_v = actuators.bias_voltage_v
         self.min_voltage_v = actuators.min_voltage_v
         self.max_voltage_v = actuators.max_voltage_v
         self.mid_voltage_v = 0.5 * (self.min_voltage_v + self.max_voltage_v)
@@ -64,7 +65,7 @@ class Allocator:
         # a spread that exceeds the span only by rounding (a force that needs exactly the whole
         # range) is reachable: scaling it by 1 - eps would report saturation for nothing
         self.span_fits = self.voltage_span_v * (1.0 + SPAN_ROUNDING)
-        k = actuators.force_constant
+        k = actuators.force_constant_n_per_v
         # per support, per stack: volts per newton of Fy and of Fz (2/3 e_i / k), flat
         coef = []
         for t1 in actuators.orientation_deg:

@@ -155,8 +155,8 @@ _SCHEMA = {
 
 @dataclass(frozen=True)
 class Actuators:
-    force_constant: float               # N/V, key actuators.force_constant_n_per_v
-    bias_voltage: float                 # V, key actuators.bias_voltage_v
+    force_constant_n_per_v: float
+    bias_voltage_v: float
     min_voltage_v: float
     max_voltage_v: float
     orientation_deg: tuple[float, float]
@@ -165,11 +165,11 @@ class Actuators:
 @dataclass(frozen=True)
 class Safety:
     strain_limit_fraction: float
-    load_range: tuple[float, float]     # N, key safety.load_range_n
+    load_range_n: tuple[float, float]
     stale_periods: int | None           # None: the gain table's ride-through limit
     overrun_streak: int
-    saturation_time: float              # s, key safety.saturation_time_s
-    ramp_time: float                    # s, key safety.ramp_time_s
+    saturation_time_s: float
+    ramp_time_s: float
     answer_budget_periods: float | None = None
     late_answer_streak: int | None = None
 
@@ -192,7 +192,7 @@ class Realtime:
 class ControllerConfig:
     pacing: str
     anti_windup: bool
-    start_ramp_time: float              # s, key start_ramp_time_s
+    start_ramp_time_s: float
     actuators: Actuators
     safety: Safety
     telemetry: Telemetry
@@ -222,15 +222,15 @@ def controller_config(overrides: dict[str, Any] | None = None, source: str = "",
         raise ConfigError(f"{prefix}safety.load_range_n", list(s["load_range_n"]), "low < high", source)
     return ControllerConfig(
         pacing=v["pacing"], anti_windup=v["anti_windup"], allocation=v["allocation"],
-        start_ramp_time=v["start_ramp_time_s"],
-        actuators=Actuators(force_constant=a["force_constant_n_per_v"], bias_voltage=a["bias_voltage_v"],
-                            min_voltage_v=a["min_voltage_v"], max_voltage_v=a["max_voltage_v"],
-                            orientation_deg=a["orientation_deg"]),
-        safety=Safety(strain_limit_fraction=s["strain_limit_fraction"], load_range=s["load_range_n"],
+        start_ramp_time_s=v["start_ramp_time_s"],
+        actuators=Actuators(force_constant_n_per_v=a["force_constant_n_per_v"],
+                            bias_voltage_v=a["bias_voltage_v"], min_voltage_v=a["min_voltage_v"],
+                            max_voltage_v=a["max_voltage_v"], orientation_deg=a["orientation_deg"]),
+        safety=Safety(strain_limit_fraction=s["strain_limit_fraction"], load_range_n=s["load_range_n"],
                       stale_periods=s["stale_periods"], overrun_streak=s["overrun_streak"],
                       answer_budget_periods=s["answer_budget_periods"],
                       late_answer_streak=s["late_answer_streak"],
-                      saturation_time=s["saturation_time_s"], ramp_time=s["ramp_time_s"]),
+                      saturation_time_s=s["saturation_time_s"], ramp_time_s=s["ramp_time_s"]),
         telemetry=Telemetry(buffer_time_s=t["buffer_time_s"], flush_interval_s=t["flush_interval_s"],
                             recording=Recording(mode=t["mode"], decimation=t["decimation"],
                                                 pre_trigger_s=t["pre_trigger_s"],

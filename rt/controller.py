@@ -198,7 +198,7 @@ class Controller:
         limits; ``law`` False leaves the stacks at bias plus the excitation (open loop)."""
         self.config = config
         self.sample_rate_hz = table.design.sample_rate_hz
-        self.period = 1.0 / self.sample_rate_hz
+        self.period_s = 1.0 / self.sample_rate_hz
         self.model_sha256 = table.model_sha256
         self.iv = iv = np.zeros(e.N_IV, dtype=np.int64)
         self.fv = fv = np.zeros(e.N_FV)
@@ -215,23 +215,23 @@ class Controller:
         iv[e.V_ANTI_WINDUP] = 1 if config.anti_windup else 0
         iv[e.V_LAW] = 1 if law else 0
         iv[e.V_CLIP] = 1 if config.allocation == "clip" else 0
-        iv[e.V_START_SAMPLES] = max(1, round(config.start_ramp_time * self.sample_rate_hz))
-        iv[e.V_SAT_LIMIT] = max(1, round(s.saturation_time * self.sample_rate_hz))
+        iv[e.V_START_SAMPLES] = max(1, round(config.start_ramp_time_s * self.sample_rate_hz))
+        iv[e.V_SAT_LIMIT] = max(1, round(s.saturation_time_s * self.sample_rate_hz))
         iv[e.V_OVERRUN_LIMIT] = s.overrun_streak
-        iv[e.V_RAMP_SAMPLES] = max(1, int(round(s.ramp_time * self.sample_rate_hz)))
+        iv[e.V_RAMP_SAMPLES] = max(1, int(round(s.ramp_time_s * self.sample_rate_hz)))
         iv[e.V_EXC_ROWS] = 0 if self._excitation is None else len(self._excitation)
         iv[e.V_EXC_ENABLED] = 1
         iv[e.V_FAULT_CHANNEL] = -1
         alloc = self.allocator
         fv[e.P_STRAIN_LIMIT] = s.strain_limit_fraction * beam.proportional_limit / beam.youngs_modulus
-        fv[e.P_LOAD_LOW], fv[e.P_LOAD_HIGH] = s.load_range
+        fv[e.P_LOAD_LOW], fv[e.P_LOAD_HIGH] = s.load_range_n
         fv[e.P_V_MIN], fv[e.P_V_MAX] = alloc.min_voltage_v, alloc.max_voltage_v
         fv[e.P_V_MID] = alloc.mid_voltage_v
         fv[e.P_SPAN], fv[e.P_SPAN_FITS] = alloc.voltage_span_v, alloc.span_fits
-        fv[e.P_BIAS] = act.bias_voltage
+        fv[e.P_BIAS] = act.bias_voltage_v
         fv[e.X_SCALE_A] = fv[e.X_SCALE_B] = 1.0
-        self._bias = np.full(6, act.bias_voltage)
-        self.safety = Safety(self, iv, fv, tuple(s.load_range), s.ramp_time)
+        self._bias = np.full(6, act.bias_voltage_v)
+        self.safety = Safety(self, iv, fv, tuple(s.load_range_n), s.ramp_time_s)
         self.supervisor = self.safety.supervisor
         self._bind(self.prepare_table(table))
         self._command(e.C_RESET_SCHEDULE)       # the limits at the first grid point until a load is seen
@@ -254,7 +254,7 @@ class Controller:
         limits = ride_through_limits(table, self.config)
         # per grid interval (the engine's index): the lesser of its two ends
         interval = np.minimum(limits, np.vstack([limits[1:], limits[-1:]]))
-        interval[:, 2] *= self.period
+        interval[:, 2] *= self.period_s
         comp = table.compensator
         schedule = GainSchedule.from_table(table)
         n = comp.n_states
@@ -269,7 +269,7 @@ class Controller:
             flat = {key: plane_blocks(b, key, ny, n) for key, b in blocks.items()}
         parts = {
             "c0": np.asarray(table.c0_phi_inv, dtype=float),
-            "th": self.period * np.asarray(comp.h, dtype=float),            # T H
+            "th": self.period_s * np.asarray(comp.h, dtype=float),            # T H
             "force": self._force_matrix,
             "coef": self.allocator.coefficients,
             "loads": np.asarray(table.loads_n, dtype=float),
@@ -313,10 +313,9 @@ class Controller:
         and not controlling: ARMED, or FAULT once the ramp has reached bias. The record moves
         into the new buffer (``record`` is then another array), the compensator rests and the
         schedule starts at the latest load; nothing is allocated."""
-        state = self.supervisor.state
-        if state not in (State.ARMED, State.FAULT) or not self.at_bias:
-            raise TransitionError(f"cannot change the gain table in state {state.name}"
-                                  + ("" if self.at_bias else " before the voltages have ramped to bias"))
+        refusal = self.supervisor.refusal("gains")
+        if refusal:
+            raise TransitionError(f"cannot change the gain table: {refusal}")
         buffer, _, _, _ = e.core_views(prepared.core, prepared.nb)
         np.copyto(buffer[:N_COLUMNS], self.record)
         buffer[N_COLUMNS:] = 0.0

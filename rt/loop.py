@@ -63,8 +63,8 @@ from beamctl.rt.controller import (
     Controller,
     PreparedTable,
 )
-from beamctl.rt.record import OPERATOR_COMMANDS, operator_code, operator_labels  # noqa: F401 (re-exported)
-from beamctl.rt.safety import Fault, State
+from beamctl.rt.record import operator_code, operator_labels  # noqa: F401 (re-exported)
+from beamctl.rt.safety import OPERATOR_COMMANDS, Fault, State
 from beamctl.rt.stop import StopRequest
 from beamctl.rt.telemetry import TelemetryWriter
 from beamctl.rt.timing import LoopTiming
@@ -170,6 +170,9 @@ class ControlLoop:
         self.stop_on_fault = stop_on_fault
         self.start = start
         self._rearm_requested = False
+        self._signal_command: OperatorCommand | None = None
+        # told the outcome of a command a signal gave (request_rearm), once it is decided
+        self.on_signal_command: Callable[[OperatorCommand], None] | None = None
         self.spin_time = spin_time
         self.clock = clock
         self.sleep = sleep
@@ -178,7 +181,7 @@ class ControlLoop:
         # (the engine's cycle in a compiled loop) and returns how many; 0 leaves the next to the loop
         self.accelerator = accelerator
         self.timing = LoopTiming()
-        self.period = controller.period
+        self.period_s = controller.period_s
         self.cycles = 0
         self.backlog_discarded = 0
         self._stop_signal = ""
@@ -194,8 +197,10 @@ class ControlLoop:
             self._stop_signal = why
 
     def request_rearm(self) -> None:
-        """Operator acknowledgement (thread- and signal-safe): a latched fault is cleared and
-        the controller starts again from bias at the next sample."""
+        """The operator's re-arm from a signal (SIGUSR1; signal- and thread-safe): at the next
+        cycle the loop posts it as the control socket's ``rearm``, decided by the same rules and
+        recorded in the telemetry the same way; ``on_signal_command`` is told its outcome (the
+        service logs it)."""
         self._rearm_requested = True
 
     # -- operator commands --------------------------------------------------------------------------
@@ -223,32 +228,10 @@ class ControlLoop:
                 "cycles": self.cycles}
 
     def refusal(self, name: str) -> str:
-        """Why the controller cannot take the operator command ``name`` now ("" if it can); safe
-        to ask from another thread, but only the loop's own answer, when it carries the command
-        out, decides."""
-        c = self.controller
-        state = c.state
-        if name == "stop":
-            return ""
-        if state == State.STOPPING or self._stop_signal:
-            return "the service is stopping"
-        if state == State.INIT:
-            return "the controller is not armed yet (no first sample from the HAL)"
-        if name == "start":
-            if state == State.RUNNING:
-                return "the controller is already running"
-            if state == State.FAULT:
-                return f"a fault is latched ({c.supervisor.reason()}): re-arm first"
-            return ""
-        if state == State.RUNNING:
-            return ("the controller is running: no fault to re-arm" if name == "rearm" else
-                    "the controller is running: the gain table changes only at bias (ARMED, or "
-                    "FAULT once the ramp has reached bias)")
-        if name == "rearm" and state != State.FAULT:
-            return f"no fault is latched ({state.name}): nothing to re-arm"
-        if not c.at_bias:
-            return f"the stacks are still ramping to bias after the fault: {name} once they are at bias"
-        return ""
+        """Why the controller cannot take the operator command ``name`` now ("" if it can): the
+        supervisor's rules (rt/safety.py). Safe to ask from another thread, but only the loop's
+        own answer, when it carries the command out, decides."""
+        return self.controller.supervisor.refusal(name, stopping=bool(self._stop_signal))
 
     def _carry_out(self, sample) -> float:
         """Decide the pending command at this cycle's ``sample``; return its telemetry code (0.0
@@ -280,6 +263,11 @@ class ControlLoop:
         command._decide(refusal, f"{before.name} -> {c.state.name}", self.cycles)
         return float(command.code)
 
+    def _signal_decided(self) -> None:
+        command, self._signal_command = self._signal_command, None
+        if self.on_signal_command is not None:
+            self.on_signal_command(command)
+
     def _end_commands(self) -> None:
         """The loop has ended: a pending command is refused, later ones too (``post``)."""
         with self._command_lock:
@@ -287,6 +275,8 @@ class ControlLoop:
             command, self._command = self._command, None
         if command is not None and command._take():
             command._decide(f"the control loop ended ({self.controller.state.name}) before carrying it out")
+        if self._signal_command is not None and self._signal_command.outcome:
+            self._signal_decided()
 
     # -- the loop ---------------------------------------------------------------------------------
     def run(self, require_rt: bool = False, acquire_rt: bool = False) -> RunResult:
@@ -342,7 +332,7 @@ class ControlLoop:
             c.safety.cap_strain_limit(full_scale, getattr(self.hal, "strain_lsb", 0.0))
         try:
             self.backlog_discarded = self.hal.discard_backlog()
-            first = self.hal.read(timeout=max(1.0, 20 * self.period))
+            first = self.hal.read(timeout=max(1.0, 20 * self.period_s))
         except HalError as exc:
             c.arm(None)
             c.fault(Fault.HAL_ERROR, f"no first sample: {exc}")
@@ -367,7 +357,7 @@ class ControlLoop:
                 self.hal.write(c.voltages)
             except Exception:   # the HAL is gone too: nothing more can be sent
                 return
-            time.sleep(self.period)
+            time.sleep(self.period_s)
 
     def _finished(self) -> bool:
         c = self.controller
@@ -382,7 +372,7 @@ class ControlLoop:
         c, hal, timing, clock = self.controller, self.hal, self.timing, self.clock
         safety = c.safety
         tel = self.telemetry
-        period = self.period
+        period = self.period_s
         timer = self.pacing == "timer"
         read_timeout = 0.5 * period if timer else 1.5 * period
         record = c.record
@@ -427,18 +417,16 @@ class ControlLoop:
             t1 = clock()
             if sample is not None:
                 self._last_sample = t1
-            if self._rearm_requested:
-                # honoured once the ramp has reached bias (kept pending until then)
-                if c.state == State.RUNNING or self._stop_signal:
-                    self._rearm_requested = False
-                elif c.state in (State.FAULT, State.STOPPED) and c.at_bias and sample is not None:
-                    self._rearm_requested = False
-                    c.rearm(sample)
-                    c.start()
+            if self._rearm_requested and self._signal_command is None:
+                self._rearm_requested = False
+                self._signal_command = OperatorCommand("rearm")
+                self.post(self._signal_command)     # refused at once while another is pending
             operator = 0.0
             if self._command is not None:
                 operator = self._carry_out(sample)
                 record = c.record       # a new gain table brings its own record
+            if self._signal_command is not None and self._signal_command.outcome:
+                self._signal_decided()
             if sample is None and not timer:
                 voltages = c.step(None, (t1 - self._last_sample) / period)
             else:

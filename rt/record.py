@@ -12,15 +12,15 @@ from __future__ import annotations
 
 from beamctl.rt.config import settings_by_key
 from beamctl.rt.engine import FLAG_NAMES, FLAG_SATURATED_A, FLAG_SATURATED_B, RECORD_COLUMNS  # noqa: F401
-from beamctl.rt.safety import Fault, State
+from beamctl.rt.safety import OPERATOR_COMMANDS, Fault, State
 
 # the flags that start a triggered recording's window (with any change of a coded column)
 TRIGGER_FLAGS = FLAG_SATURATED_A | FLAG_SATURATED_B
 
 
-# the commands an operator gives the loop; in the telemetry's operator_command column the i-th
-# is 2 i + 1 when carried out and 2 i + 2 when refused (0: no command at that sample)
-OPERATOR_COMMANDS = ("start", "stop", "rearm", "gains")
+# in the telemetry's operator_command column the i-th of the operator's commands
+# (rt/safety.py's OPERATOR_COMMANDS) is 2 i + 1 when carried out and 2 i + 2 when refused (0: no
+# command at that sample)
 
 
 def operator_code(command: str, carried_out: bool) -> int:

@@ -62,6 +62,11 @@ DESCRIPTIONS = {
 }
 
 
+# the commands an operator gives the controller (``beamctl ctl``, the control socket; SIGUSR1 is a
+# rearm); which is carried out in which state is ``Supervisor.refusal``'s to say, and nobody else's
+OPERATOR_COMMANDS = ("start", "stop", "rearm", "gains")
+
+
 class TransitionError(RuntimeError):
     """A lifecycle transition that is not allowed from the current state."""
 
@@ -105,7 +110,7 @@ class Supervisor:
         if fault == Fault.LOAD_NOT_FINITE:
             return f"load = {value}"
         if fault == Fault.LOAD_OUT_OF_SENSOR_RANGE:
-            low, high = self._safety.load_range
+            low, high = self._safety.load_range_n
             return f"load = {value:.1f} N, range [{low:g}, {high:g}] N"
         if fault == Fault.LOAD_OUT_OF_TABLE_RANGE:
             return (f"filtered load {value:.1f} N outside the table's [{self._safety.table_first_n:g}, "
@@ -119,6 +124,44 @@ class Supervisor:
         if fault == Fault.LATE_ANSWERS:
             return (f"{channel} answers in a row later than {limit * 1e6:.0f} us, the last "
                     f"{value * 1e6:.0f} us")
+        return ""
+
+    def refusal(self, command: str, stopping: bool = False) -> str:
+        """Why the operator's ``command`` (one of OPERATOR_COMMANDS) cannot be carried out now,
+        "" if it can: the lifecycle's rules, in one place. ``stopping``: the service is ending (a
+        stop was asked for). The engine's own transitions (rt/engine.py, ``command``) accept
+        every command this allows (tests/rt/test_safety.py)::
+
+            stop    always (ramp to bias and end)
+            start   from ARMED
+            rearm   from FAULT once the ramp has reached bias (then a start, unless held)
+            gains   at bias and not controlling: ARMED, or FAULT once the ramp has reached bias
+        """
+        if command not in OPERATOR_COMMANDS:
+            raise ValueError(f"operator command {command!r}: expected one of {OPERATOR_COMMANDS}")
+        state = self.state
+        if command == "stop":
+            return ""
+        if state == State.STOPPING or stopping:
+            return "the service is stopping"
+        if state == State.INIT:
+            return "the controller is not armed yet (no first sample from the HAL)"
+        if command == "start":
+            if state == State.RUNNING:
+                return "the controller is already running"
+            if state == State.FAULT:
+                return f"a fault is latched ({self.reason()}): re-arm first"
+            return "" if state == State.ARMED else f"the controller has {state.name.lower()}"
+        if state == State.RUNNING:
+            return ("the controller is running: no fault to re-arm" if command == "rearm" else
+                    "the controller is running: the gain table changes only at bias (ARMED, or "
+                    "FAULT once the ramp has reached bias)")
+        if command == "rearm" and state != State.FAULT:
+            return f"no fault is latched ({state.name}): nothing to re-arm"
+        if command == "gains" and state not in (State.ARMED, State.FAULT):
+            return f"the controller has {state.name.lower()}: the gain table changes only at bias"
+        if not self._safety.at_bias:
+            return f"the stacks are still ramping to bias after the fault: {command} once they are at bias"
         return ""
 
     def reason(self) -> str:
@@ -136,7 +179,7 @@ class Safety:
                  ramp_time_s: float) -> None:
         self._controller = controller
         self.iv, self.fv = iv, fv
-        self.load_range = load_range
+        self.load_range_n = load_range
         self.ramp_time_s = ramp_time_s
         self.supervisor = Supervisor(self)
 

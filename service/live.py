@@ -64,7 +64,7 @@ def live_publisher(path: str | Path, controller: Controller, label: str,
             "table_loads_n": [float(table.loads_n[0]), float(table.loads_n[-1])],
             "critical_load_n": critical_load(build_model(table.model_parameters)),
             "voltage_limits_v": [actuators.min_voltage_v, actuators.max_voltage_v],
-            "bias_voltage_v": actuators.bias_voltage,
+            "bias_voltage_v": actuators.bias_voltage_v,
             "states": {int(s): s.name for s in State},
             "faults": {int(f): f"{f.name}: {DESCRIPTIONS[f]}" for f in Fault}, "flags": FLAGS}
     return LivePublisher(path, rec.RECORD_COLUMNS, controller.sample_rate_hz, meta=meta,

@@ -26,7 +26,7 @@ from beamctl.gains.table import GainTable
 from beamctl.hal.base import HalBase, HalError
 from beamctl.rt import realtime
 from beamctl.rt.controller import Controller
-from beamctl.rt.loop import ControlLoop, RunResult, StopRequest
+from beamctl.rt.loop import ControlLoop, OperatorCommand, RunResult, StopRequest
 from beamctl.rt.telemetry import TelemetryWriter
 from beamctl.service import live as live_view
 from beamctl.service.control import ControlError, default_socket_path
@@ -128,6 +128,7 @@ class Service:
             if self.live is not None:
                 live_view.watch_loop(self.live, loop, telemetry, table_path=lambda: self.server.table)
             rearm = signal.signal(signal.SIGUSR1, lambda *_: loop.request_rearm()) if main else None
+            loop.on_signal_command = self._log_signal_command
             notifier.ready(f"running at {table.design.sample_rate_hz:g} Hz")
             self._started.set()
             try:
@@ -158,6 +159,12 @@ class Service:
                                      live=live)
         self.outcome.summary = self._summary()
         return self.outcome
+
+    def _log_signal_command(self, command: OperatorCommand) -> None:
+        """The outcome of SIGUSR1's re-arm, as the control socket logs its commands."""
+        outcome = (f"carried out ({command.transition})" if command.outcome == "carried out"
+                   else f"refused: {command.refusal}")
+        self.log(f"operator {command.name} (SIGUSR1): {outcome}")
 
     def _summary(self) -> dict[str, Any]:
         o = self.outcome

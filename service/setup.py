@@ -316,7 +316,7 @@ def check_voltage_range(cfg: ServiceConfig, hal: HalBase) -> None:
     signal_range = contract.voltages.signals[0]
     a = cfg.controller.actuators
     for key, value in (("min_voltage_v", a.min_voltage_v), ("max_voltage_v", a.max_voltage_v),
-                       ("bias_voltage_v", a.bias_voltage)):
+                       ("bias_voltage_v", a.bias_voltage_v)):
         if not signal_range.minimum <= value <= signal_range.maximum:
             raise ConfigError(f"controller.actuators.{key}", value,
                               f"a voltage the DBC's {contract.voltages.name} carries "

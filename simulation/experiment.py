@@ -375,7 +375,7 @@ def run_experiment(cfg: ServiceConfig, settings: dict, tables: dict[str, GainTab
     plant_s = sum(t.plant_s for t in traces.values())
     summary["scenario"] = {"source": cfg.source, "bow_amplitude_mm": 1e3 * cfg.plant["bow"]["amplitude"],
                            "bow_angle_deg": cfg.plant["bow"]["angle_deg"],
-                           "force_constant_N_per_V": cfg.controller.actuators.force_constant,
+                           "force_constant_N_per_V": cfg.controller.actuators.force_constant_n_per_v,
                            "rig_force_constant_N_per_V": plant_geometry(cfg).force_constant_n_per_v,
                            "plant_model": cfg.plant_model,
                            "load_rate_N_per_s": cfg.plant["load"]["rate"],

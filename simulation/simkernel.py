@@ -222,7 +222,7 @@ class Accelerator:
         self._lateral = np.ascontiguousarray(plant._lateral)
         self._scratch = np.zeros(4 + plant.n_states)
         f, k = self._f, self._k
-        f[F_PERIOD] = plant.sample_period
+        f[F_PERIOD] = plant.period_s
         f[F_CELL] = 2.0 * plant.config.load_tolerance
         k[K_FRACTIONAL] = 1 if plant._fractional else 0
         k[K_DELAYED] = 1 if plant._delayed else 0

@@ -253,7 +253,7 @@ def test_a_rig_is_described_in_a_line_with_units():
     ({"parameters": {"sample_rate_hz": {"offset": [-1, 1]}}}, "box.parameters.sample_rate_hz"),
     ({"parameters": {"beam.youngs_modulus": {"factor": [0.9, 1.1]}}, "population": 2}, "box.population"),
     ({"parameters": {"beam.youngs_modulus": {"factor": [0.9, 1.1]}}, "strategy": "guess"}, "box.strategy"),
-    ({"parameters": {"beam.youngs_modulus": {"factor": [0.9, 1.1]}}, "resolution_N": 0}, "box.resolution_N"),
+    ({"parameters": {"beam.youngs_modulus": {"factor": [0.9, 1.1]}}, "resolution_n": 0}, "box.resolution_n"),
     ({"parameters": {"beam.youngs_modulus": {"factor": [0.9, 1.1]}}, "corners": 5}, "box.corners"),
     ({"parameters": {}}, "box.parameters"),
     ({"parameters": {"beam.youngs_modulus": {"factor": [0.9, 1.1]}}, "seeds": 1}, "box.seeds"),
@@ -262,6 +262,18 @@ def test_a_bad_box_is_refused_naming_the_key(data, key):
     with pytest.raises(ConfigError) as err:
         box_from_dict(data, load_parameters())
     assert err.value.key == key, f"refused {err.value.key!r}, expected {key!r}: {err.value}"
+
+
+def test_a_box_file_s_load_steps_are_spelled_as_the_study_file_s():
+    """``max_step_n`` in a box file as in a study file's ``linear:``; the spelling of before
+    (``max_step_N``) is refused in one line naming the key to write instead."""
+    base = {"parameters": {"beam.youngs_modulus": {"factor": [0.9, 1.1]}}}
+    assert box_from_dict({**base, "max_step_n": 25.0}, load_parameters()).max_step_n == 25.0
+    for old in ("max_step_N", "fine_step_N", "resolution_N", "search_step_N"):
+        with pytest.raises(ConfigError) as err:
+            box_from_dict({**base, old: 10.0}, load_parameters())
+        message = str(err.value)
+        assert err.value.key == f"box.{old}" and f"box.{old[:-2]}_n in its place" in message, message
 
 
 def test_the_default_box_round_trips_through_its_dict():

@@ -12,11 +12,11 @@ QUIET = {"noise": {"strain": 0.0, "load": 0.0, "seed": 0}, "bow": {"amplitude": 
 def _first_moved(hal: SimBackend, samples: int = 6) -> tuple[int, np.ndarray]:
     """Answer sample 0 with bias, every later sample with +30 V on stack a1; the index of the
     first sample whose strains are not zero, and all strains read."""
-    volts = np.full(6, GEOMETRY.bias_voltage)
+    volts = np.full(6, GEOMETRY.bias_voltage_v)
     strains = []
     for k in range(samples):
         strains.append(hal.read(timeout=1.0).strains.copy())
-        volts[0] = GEOMETRY.bias_voltage + (30.0 if k >= 1 else 0.0)
+        volts[0] = GEOMETRY.bias_voltage_v + (30.0 if k >= 1 else 0.0)
         hal.write(volts)
     moved = [k for k, s in enumerate(strains) if np.any(s != 0.0)]
     return moved[0], np.array(strains)

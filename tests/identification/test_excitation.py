@@ -28,7 +28,7 @@ def test_every_signal_has_peak_one_and_zero_mean(kind):
 
 def test_a_multisine_puts_all_its_power_on_the_band_s_lines_with_equal_amplitude():
     e = periodic_signal("multisine", RATE_HZ, BAND_HZ, 2.0, seed=1)
-    assert e.period == 3000, "6000 Hz / 2 Hz = 3000 samples a period"
+    assert e.period_samples == 3000, "6000 Hz / 2 Hz = 3000 samples a period"
     spectrum = np.abs(np.fft.rfft(e.values))
     lines = np.arange(25, 401)                     # 50..800 Hz every 2 Hz
     assert _power_in_band(e.values, BAND_HZ) > 1 - 1e-12
@@ -52,7 +52,7 @@ def test_chirp_and_prbs_put_their_power_where_the_band_is(kind, share):
 def test_the_prbs_is_flat_within_3_db_across_the_band():
     e = periodic_signal("prbs", RATE_HZ, BAND_HZ, 2.0, seed=1)
     power = np.abs(np.fft.rfft(e.values)) ** 2
-    f = np.fft.rfftfreq(e.period, 1 / RATE_HZ)
+    f = np.fft.rfftfreq(e.period_samples, 1 / RATE_HZ)
     inside = (f >= BAND_HZ[0]) & (f <= BAND_HZ[1]) & (power > 0)
     smooth = np.convolve(power, np.ones(64) / 64, mode="same")[inside]
     assert 10 * np.log10(smooth.max() / smooth.min()) < 3.0

@@ -53,7 +53,7 @@ def _rig_response(cfg, table, freqs, load_n=2000.0):
     params = parameters_from_dict(RIG["plant"]["model"])
     plant = Plant(build_model(params), plant_config({"sample_rate_hz": table.design.sample_rate_hz,
                                                      "io": table.design.io.to_dict()}))
-    return plant.frequency_response(load_n, freqs) * (3.3 / cfg.controller.actuators.force_constant)
+    return plant.frequency_response(load_n, freqs) * (3.3 / cfg.controller.actuators.force_constant_n_per_v)
 
 
 def _spy_on_writes(monkeypatch) -> list:

@@ -57,9 +57,9 @@ def test_default_chain_is_the_beam_alone_sampled_with_a_zero_order_hold(paper_mo
     for f in forces:
         expected.append(c0 @ x[:n])
         a, b = plant.continuous(round(load / cell) * cell)
-        ad, bd, *_ = sig.cont2discrete((a, b, np.eye(2 * n), np.zeros((2 * n, 5))), plant.sample_period)
+        ad, bd, *_ = sig.cont2discrete((a, b, np.eye(2 * n), np.zeros((2 * n, 5))), plant.period_s)
         x = ad @ x + bd @ np.append(f, load)
-        time_s += plant.sample_period
+        time_s += plant.period_s
         load = plant.config.load.load_at(time_s)
     measured = _strains(plant, forces)
     scale = np.abs(expected).max()

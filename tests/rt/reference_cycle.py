@@ -117,7 +117,7 @@ class ReferenceController:
     def __init__(self, table, config: ControllerConfig, *, excitation: np.ndarray | None = None,
                  law: bool = True) -> None:
         rate = table.design.sample_rate_hz
-        self.period = 1.0 / rate
+        self.period_s = 1.0 / rate
         self.law = law
         self.anti_windup = config.anti_windup
         self.clip_allocation = config.allocation == "clip"
@@ -126,19 +126,19 @@ class ReferenceController:
         beam = table.model_parameters.beam
 
         # -- settings -----------------------------------------------------------------------------
-        self.start_samples = max(1, round(config.start_ramp_time * rate))      # fade-in
-        self.saturation_limit = max(1, round(s.saturation_time * rate))
-        self.ramp_samples = max(1, int(round(s.ramp_time * rate)))
+        self.start_samples = max(1, round(config.start_ramp_time_s * rate))      # fade-in
+        self.saturation_limit = max(1, round(s.saturation_time_s * rate))
+        self.ramp_samples = max(1, int(round(s.ramp_time_s * rate)))
         self.overrun_limit = s.overrun_streak
         self.strain_limit = s.strain_limit_fraction * beam.proportional_limit / beam.youngs_modulus
-        self.load_low, self.load_high = s.load_range
-        self.bias = a.bias_voltage
+        self.load_low, self.load_high = s.load_range_n
+        self.bias = a.bias_voltage_v
         self.v_min, self.v_max = a.min_voltage_v, a.max_voltage_v
         self.v_mid = 0.5 * (self.v_min + self.v_max)
         self.v_span = self.v_max - self.v_min
         # stack i of a support pushes along e_i = (cos t_i, sin t_i), t_i = t_1 + (i - 1) 120 deg,
         # with k (V_i - V_bias); the lateral force F needs stack shares 2/3 e_i . F / k volts
-        k = a.force_constant
+        k = a.force_constant_n_per_v
         angles = [[math.radians(t1 + 120.0 * i) for i in range(3)] for t1 in a.orientation_deg]
         self.axes = [np.array([[math.cos(t), math.sin(t)] for t in support]) for support in angles]
         self.volts_per_newton = [2.0 / 3.0 * ax / k for ax in self.axes]       # [3 x 2] per support
@@ -154,7 +154,7 @@ class ReferenceController:
         self.half_band = 0.5 * table.schedule.hysteresis_n
         self.alpha = 1.0 - math.exp(-2.0 * math.pi * table.schedule.load_filter_hz / rate)
         self.c0_phi_inv = np.asarray(table.c0_phi_inv, dtype=float)
-        self.integral_map = self.period * np.asarray(comp.h, dtype=float)      # T H
+        self.integral_map = self.period_s * np.asarray(comp.h, dtype=float)      # T H
         self.start_map = np.asarray(comp.start, dtype=float)
         self.grid = {m: np.asarray(getattr(comp, m), dtype=float) for m in MATRIX_NAMES}
         predict = getattr(comp, "predict", None)
@@ -223,7 +223,7 @@ class ReferenceController:
     @property
     def answer_budget_s(self) -> float:
         """An answer sent later than this after its sample arrived is late."""
-        return self.interval_limits[self.index, 2] * self.period
+        return self.interval_limits[self.index, 2] * self.period_s
 
     # == lifecycle (every command carried out records the state and the fault) ====================
     @property

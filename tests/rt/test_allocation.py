@@ -15,8 +15,8 @@ any_float = st.floats(allow_nan=True, allow_infinity=True, width=64)
 force = st.floats(min_value=-1e4, max_value=1e4, allow_nan=False)
 actuators = st.builds(
     Actuators,
-    force_constant=st.floats(min_value=0.05, max_value=50.0),
-    bias_voltage=st.just(75.0),
+    force_constant_n_per_v=st.floats(min_value=0.05, max_value=50.0),
+    bias_voltage_v=st.just(75.0),
     min_voltage_v=st.floats(min_value=-30.0, max_value=20.0),
     max_voltage_v=st.floats(min_value=100.0, max_value=150.0),
     orientation_deg=st.tuples(st.floats(min_value=-360, max_value=360),
@@ -76,7 +76,7 @@ def test_common_mode_centres_the_voltages_in_the_range(act, fy, fz):
 
 
 def test_zero_force_puts_every_stack_mid_range_and_non_finite_demand_gives_no_force():
-    act = Actuators(force_constant=2.5, bias_voltage=75.0, min_voltage_v=0.0, max_voltage_v=150.0,
+    act = Actuators(force_constant_n_per_v=2.5, bias_voltage_v=75.0, min_voltage_v=0.0, max_voltage_v=150.0,
                     orientation_deg=(90.0, 90.0))
     alloc, v = _allocate(act, [0.0, 0.0, 0.0, 0.0])
     np.testing.assert_array_equal(v, 75.0)
@@ -87,7 +87,7 @@ def test_zero_force_puts_every_stack_mid_range_and_non_finite_demand_gives_no_fo
 
 def test_a_stack_pointing_along_the_force_takes_the_largest_voltage():
     """Stack 1 at +y: a +y force raises stack 1 and lowers the other two equally."""
-    act = Actuators(force_constant=2.0, bias_voltage=75.0, min_voltage_v=0.0, max_voltage_v=150.0,
+    act = Actuators(force_constant_n_per_v=2.0, bias_voltage_v=75.0, min_voltage_v=0.0, max_voltage_v=150.0,
                     orientation_deg=(0.0, 0.0))
     _, v = _allocate(act, [60.0, 0.0, 0.0, 0.0])
     # f = 2/3 e.F = (40, -20, -20) N -> (20, -10, -10) V around the centre
@@ -98,7 +98,7 @@ def test_a_force_that_needs_exactly_the_whole_range_is_reachable():
     """100 N along stack 1 at 1 N/V needs stack forces (66.7, -33.3, -33.3) N: a spread of
     exactly the 100 V span, which rounding makes 100 V + 1 ulp. It is reproduced exactly, so
     it must not be reported as saturated (scale 1 - eps would hold the integrator)."""
-    act = Actuators(force_constant=1.0, bias_voltage=50.0, min_voltage_v=0.0, max_voltage_v=100.0,
+    act = Actuators(force_constant_n_per_v=1.0, bias_voltage_v=50.0, min_voltage_v=0.0, max_voltage_v=100.0,
                     orientation_deg=(0.0, 0.0))
     alloc, v = _allocate(act, [100.0, 0.0, 0.0, 0.0])
     assert alloc.scale_a == 1.0, f"scale {alloc.scale_a!r} for a force inside the range"
@@ -125,8 +125,9 @@ def one_stack_clipped(draw):
     act = draw(actuators)
     t1 = act.orientation_deg[0]
     theta = t1 + 60.0 * draw(st.integers(0, 5)) + draw(st.floats(2.0, 58.0))
-    share = 2.0 / 3.0 * np.cos(np.radians(theta - t1 - 120.0 * np.arange(3))) / act.force_constant  # V per N
-    room = np.where(share > 0, act.max_voltage_v - act.bias_voltage, act.min_voltage_v - act.bias_voltage)
+    share = (2.0 / 3.0 * np.cos(np.radians(theta - t1 - 120.0 * np.arange(3)))
+             / act.force_constant_n_per_v)  # V per N
+    room = np.where(share > 0, act.max_voltage_v - act.bias_voltage_v, act.min_voltage_v - act.bias_voltage_v)
     first, second = np.sort(room / share)[:2]
     size = first + draw(st.floats(0.01, 0.99)) * (second - first)
     return act, size * math.cos(math.radians(theta)), size * math.sin(math.radians(theta))
@@ -158,7 +159,7 @@ def test_the_paper_s_rig_clips_the_stack_nearest_the_force_and_the_force_turns_a
     asks stack 2 for 75 + 2/3 * 400 cos(20 deg) / 3 = 158.5 V. Clipped at 150 V it gives
     8.5 V * 3 N/V = 25.4 N less than its share along 210 deg; stacks 1 and 3 still give theirs
     (6.9 V and 59.6 V), so the force turns away from 210 deg by 1.3 deg, to 231.3 deg."""
-    act = Actuators(force_constant=3.0, bias_voltage=75.0, min_voltage_v=0.0, max_voltage_v=150.0,
+    act = Actuators(force_constant_n_per_v=3.0, bias_voltage_v=75.0, min_voltage_v=0.0, max_voltage_v=150.0,
                     orientation_deg=(90.0, 90.0))
     demand = 400.0 * np.array([math.cos(math.radians(230.0)), math.sin(math.radians(230.0))])
     clip, v = _allocate(act, [*demand, 0.0, 0.0], "clip")
@@ -174,7 +175,7 @@ def test_the_paper_s_rig_clips_the_stack_nearest_the_force_and_the_force_turns_a
 
 
 def test_clip_gives_no_force_for_a_non_finite_demand():
-    act = Actuators(force_constant=2.5, bias_voltage=70.0, min_voltage_v=0.0, max_voltage_v=150.0,
+    act = Actuators(force_constant_n_per_v=2.5, bias_voltage_v=70.0, min_voltage_v=0.0, max_voltage_v=150.0,
                     orientation_deg=(90.0, 90.0))
     alloc, v = _allocate(act, [math.nan, 1.0, math.inf, 2.0], "clip")
     np.testing.assert_array_equal(v, 70.0)
@@ -184,7 +185,7 @@ def test_clip_gives_no_force_for_a_non_finite_demand():
 
 
 def test_an_unknown_mode_is_refused():
-    act = Actuators(force_constant=2.5, bias_voltage=75.0, min_voltage_v=0.0, max_voltage_v=150.0,
+    act = Actuators(force_constant_n_per_v=2.5, bias_voltage_v=75.0, min_voltage_v=0.0, max_voltage_v=150.0,
                     orientation_deg=(90.0, 90.0))
     with pytest.raises(ValueError, match="'spread'.*scale, clip"):
         Allocator(act, "spread")

@@ -79,7 +79,7 @@ def test_step_computes_q_velocity_integral_and_u_as_specified(table):
                               axis=0, zi=-filt.b0 * np.zeros((1, 4)))[0]
     # the controller starts its filter at rest on the first sample (all zero here)
     np.testing.assert_allclose(qdots, filt.scale * hp[1:], rtol=1e-9, atol=1e-15)
-    np.testing.assert_allclose(xis, np.cumsum(q_ref, axis=0) * c.period, rtol=1e-9, atol=1e-20)
+    np.testing.assert_allclose(xis, np.cumsum(q_ref, axis=0) * c.period_s, rtol=1e-9, atol=1e-20)
     load = c.filtered_load_n
     assert 1200 < load < 1250 and load % 50.0 != 0.0, "between two grid points"
     x = np.concatenate([qs[-1], qdots[-1], xis[-1]])
@@ -94,7 +94,7 @@ def test_velocity_estimate_starts_without_a_kick(table):
     c.start()
     c.step(s)
     assert np.abs(_velocity_estimate(c)).max() < 1e-12
-    np.testing.assert_allclose(c.xi, c.q * c.period, rtol=1e-12)
+    np.testing.assert_allclose(c.xi, c.q * c.period_s, rtol=1e-12)
 
 
 def test_start_fades_the_voltages_in_from_bias(table):

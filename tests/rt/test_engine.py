@@ -446,10 +446,10 @@ class Sequence(Pair):
         elif kind == 3:
             load = float(rng.choice([np.nan, np.inf, -np.inf]))
         elif kind == 4:
-            low, high = self.config.safety.load_range
+            low, high = self.config.safety.load_range_n
             load = float(rng.choice([low - rng.uniform(1e-9, 100.0), high + rng.uniform(1e-9, 100.0)]))
         elif kind == 5:
-            low, high = self.config.safety.load_range
+            low, high = self.config.safety.load_range_n
             load = float(rng.choice([low, high]))                   # at the range's ends: allowed
         elif kind == 6:
             strains[:] = np.nan
@@ -523,7 +523,7 @@ class Sequence(Pair):
             self.call("step", self.sample())
         # the loop's reports after the cycle: the answer's age, the cycle's timing
         if with_sample and rng.random() < 0.8:
-            budget, period = self.r.answer_budget_s, self.r.period
+            budget, period = self.r.answer_budget_s, self.r.period_s
             late = budget + period * float(rng.uniform(1e-6, 1.5))
             if self.late_link:
                 age = late
@@ -674,8 +674,8 @@ class Watch:
         self.c = c
         self.config = c.config
         self.rate = c.sample_rate_hz
-        self.n = max(1, round(self.config.safety.ramp_time * self.rate))
-        self.bias = self.config.actuators.bias_voltage
+        self.n = max(1, round(self.config.safety.ramp_time_s * self.rate))
+        self.bias = self.config.actuators.bias_voltage_v
         self.latched = None             # (fault, time, value, limit, channel)
         self.ramp = None                # [voltages it started from, ramp steps taken]
         self.sequence = 0
@@ -917,7 +917,7 @@ def test_the_late_answer_limit_is_ridden_through_and_one_more_faults(shipped):
     w.step()
     w.do("answer_sent", budget)                 # on the budget: on time, the streak ends
     assert w.c.state == State.RUNNING and w.c.safety.late_streak == 0
-    late_age = budget + 0.5 * w.c.period
+    late_age = budget + 0.5 * w.c.period_s
     for _ in range(late):
         w.step()
         w.do("answer_sent", late_age)
@@ -946,7 +946,7 @@ def test_persistent_saturation_faults_after_saturation_time_of_saturated_samples
     """A bent beam the stacks cannot straighten: the fault comes at the saturation_time x rate-th
     saturated sample in a row, not one before."""
     table, config = shipped[0], shipped[1]
-    limit = round(config.safety.saturation_time * table.design.sample_rate_hz)
+    limit = round(config.safety.saturation_time_s * table.design.sample_rate_hz)
     w = _running(shipped)
     c = w.c
     streak = 0
@@ -991,7 +991,7 @@ def test_a_non_finite_strain_or_load_faults(shipped, value):
 
 @pytest.mark.parametrize("end", [0, 1])
 def test_a_load_on_the_sensor_range_s_end_passes_and_beyond_faults(shipped, end):
-    low, high = shipped[1].safety.load_range
+    low, high = shipped[1].safety.load_range_n
     edge = (low, high)[end]
     beyond = math.nextafter(edge, (-math.inf, math.inf)[end])
     w = _running(shipped)
@@ -1089,7 +1089,7 @@ def test_the_loop_faults_on_the_overrun_that_completes_the_streak(shipped):
     def on_cycle(lp):
         seen[lp.cycles] = (c.state, c.safety.overrun_streak)
         if lp.cycles in slow:
-            clock.now += 1.5 * lp.period        # this cycle's work overran its deadline
+            clock.now += 1.5 * lp.period_s        # this cycle's work overran its deadline
 
     loop.on_cycle = on_cycle
     result = loop.run(require_rt=False, acquire_rt=False)
@@ -1108,7 +1108,7 @@ def test_the_loop_faults_on_the_late_answer_beyond_the_limit(shipped):
     clock = FakeClock()
     c = Controller(table, config)
     hal = ScriptedHal(table.design.sample_rate_hz, [], default=(DEFLECTED, LOAD), sleep=clock.sleep,
-                      answer_ages_s=lambda seq: budget + 0.5 * c.period if seq >= 100 else budget).open()
+                      answer_ages_s=lambda seq: budget + 0.5 * c.period_s if seq >= 100 else budget).open()
     states = {}
 
     def on_cycle(lp):

@@ -210,7 +210,7 @@ def test_timer_pacing_keeps_absolute_deadlines_and_skips_ahead_after_an_overrun(
     clock = FakeClock()
     loop, hal = _loop(table, [], pacing="timer", max_cycles=1000, default=oscillating)
     loop.clock, loop.sleep = clock, clock.sleep
-    period = loop.period
+    period = loop.period_s
     ends = []
 
     def on_cycle(lp):
@@ -334,22 +334,29 @@ def test_an_unexpected_error_in_the_loop_ramps_the_stacks_to_bias_before_propaga
     _assert_safe_ramp(hal)
 
 
-def test_a_rearm_requested_during_the_ramp_waits_for_bias(table):
-    """SIGUSR1 right after a fault must not make the voltages jump back to bias."""
+def test_a_signal_s_rearm_follows_the_rules_of_the_control_socket_s(table):
+    """SIGUSR1 is ``ctl rearm``: right after a fault, while the stacks ramp, it is refused (the
+    voltages never jump back to bias) and the refusal is told to the service; once at bias, a
+    second one re-arms. Each is decided by the supervisor's rules, as the socket's command is."""
     loop, hal = _loop(table, [DEFLECTED] * 300 + [((np.nan, 0.0, 0.0, 0.0), 1500.0)],
                       default=oscillating, start_ramp_time_s=0.05)
     loop.stop_on_fault = False
-    states = []
+    states, told = [], []
+    loop.on_signal_command = told.append
 
     def on_cycle(lp):
         states.append(lp.controller.state)
         if states[-1] == State.FAULT and states.count(State.FAULT) == 2:
             lp.request_rearm()        # two samples into the 125-sample ramp
+        if states[-1] == State.FAULT and lp.controller.at_bias and len(told) == 1:
+            lp.request_rearm()
         if lp.cycles > 1000:
             lp.request_stop("test")
 
     loop.on_cycle = on_cycle
     _run(loop)
+    assert [(c.name, c.outcome) for c in told] == [("rearm", "refused"), ("rearm", "carried out")], told
+    assert "still ramping to bias" in told[0].refusal and told[1].transition == "FAULT -> RUNNING", told
     first_fault = states.index(State.FAULT)
     restarted = first_fault + states[first_fault:].index(State.RUNNING)
     assert restarted - first_fault >= RAMP_TIME * 2500, "re-armed only after the ramp"

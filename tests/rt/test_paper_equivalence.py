@@ -29,7 +29,7 @@ class PaperStep:
 
     def __init__(self, table, config):
         filt = velocity_filter(table.design.velocity_cutoff_hz, table.design.sample_rate_hz)
-        self.period = 1.0 / table.design.sample_rate_hz
+        self.period_s = 1.0 / table.design.sample_rate_hz
         self.ti = table.c0_phi_inv
         self.filt = filt
         self.loads = [float(x) for x in table.loads_n]
@@ -42,8 +42,8 @@ class PaperStep:
                                     / table.design.sample_rate_hz)
         self.allocator = Allocator(config.actuators)
         self.anti_windup = config.anti_windup
-        self.bias = config.actuators.bias_voltage
-        self.start_samples = max(1, round(config.start_ramp_time * table.design.sample_rate_hz))
+        self.bias = config.actuators.bias_voltage_v
+        self.start_samples = max(1, round(config.start_ramp_time_s * table.design.sample_rate_hz))
 
     def start(self, strains, load):
         """Armed on, and started from, the same sample."""
@@ -84,7 +84,7 @@ class PaperStep:
         q = self.ti @ strains
         qdot = self.filt.scale * self.filt.b0 * q + self.hp
         self.hp = self.filt.scale * self.filt.b1 * q - self.filt.a1 * qdot
-        dxi = self.period * q
+        dxi = self.period_s * q
         alloc = self.allocator
         held = False
         if self.anti_windup and (alloc.scale_a < 1.0 or alloc.scale_b < 1.0):

@@ -76,3 +76,55 @@ def test_a_streak_of_overruns_faults_and_a_cycle_on_time_ends_the_streak(table):
     assert c.state == State.RUNNING and c.safety.max_overrun_streak == limit - 1
     c.safety.cycle_overran()
     assert c.supervisor.fault == Fault.OVERRUN_STREAK, c.supervisor.reason()
+
+
+def _in(table, situation: str) -> Controller:
+    """A controller in one of the lifecycle's situations (driving the stacks where it runs)."""
+    if situation == "INIT":
+        return Controller(table, controller_config({"start_ramp_time_s": 0.0, "safety": {"ramp_time_s": 0.02}}))
+    c = _driving(table)
+    if situation == "ARMED":
+        c = Controller(table, controller_config({"start_ramp_time_s": 0.0, "safety": {"ramp_time_s": 0.02}}))
+        s = Sample()
+        s.axial_load = 1500.0
+        c.arm(s)
+    elif situation.startswith("FAULT"):
+        c.fault(Fault.OPERATOR, "test")
+    elif situation.startswith("STOP"):
+        c.request_stop()
+    if situation in ("FAULT at bias", "STOPPED"):
+        while not c.at_bias or c.state == State.STOPPING:
+            c.step(None)
+    return c
+
+
+SITUATIONS = ("INIT", "ARMED", "RUNNING", "FAULT ramping", "FAULT at bias", "STOPPING", "STOPPED")
+# the rules as the lab documentation states them: the commands carried out in each situation
+ALLOWED = {"INIT": {"stop"}, "ARMED": {"stop", "start", "gains"}, "RUNNING": {"stop"},
+           "FAULT ramping": {"stop"}, "FAULT at bias": {"stop", "rearm", "gains"}, "STOPPING": {"stop"},
+           "STOPPED": {"stop"}}
+
+
+@pytest.mark.parametrize("situation", SITUATIONS)
+def test_the_supervisor_s_rules_are_the_documented_ones_and_the_engine_carries_out_what_they_allow(
+        table, situation):
+    """One set of rules (Supervisor.refusal) for the control socket, SIGUSR1 and a gain table's
+    swap: in each situation exactly the documented commands are allowed, every refusal says why,
+    and each allowed one the engine (or the controller's swap) carries out without refusing."""
+    c = _in(table, situation)
+    expected_state = situation.split()[0]
+    assert c.state.name == expected_state, (situation, c.state.name)
+    assert c.at_bias == (situation != "RUNNING" and situation != "FAULT ramping" and situation != "STOPPING")
+    refusals = {name: c.supervisor.refusal(name) for name in ("start", "stop", "rearm", "gains")}
+    allowed = {name for name, why in refusals.items() if not why}
+    assert allowed == ALLOWED[situation], (situation, refusals)
+    assert all(len(why) > 10 for why in refusals.values() if why), refusals
+    assert c.supervisor.refusal("start", stopping=True) != "" and c.supervisor.refusal("stop", stopping=True) == ""
+    for name in allowed:
+        c = _in(table, situation)
+        sample = Sample()
+        sample.axial_load = 1500.0
+        {"start": c.start, "stop": c.request_stop, "rearm": lambda: c.rearm(sample),
+         "gains": lambda: c.use_table(c.prepare_table(table))}[name]()
+    with pytest.raises(ValueError, match="explode"):
+        c.supervisor.refusal("explode")

@@ -92,7 +92,7 @@ def test_the_uncontrolled_run_is_the_loops(scenario):
     loop, kernel = _both(scenario, "uncontrolled")
     _assert_same_run(loop, kernel)
     cfg = scenario[0]
-    stop_ramp = round(cfg.controller.safety.ramp_time * 6000.0)
+    stop_ramp = round(cfg.controller.safety.ramp_time_s * 6000.0)
     assert kernel.kernel_cycles >= kernel.cycles - stop_ramp - 2, (
         f"{kernel.kernel_cycles} of {kernel.cycles} cycles in the kernel: all but the arming cycle and the "
         f"stop's ramp to bias ({stop_ramp} samples) should be")

@@ -136,7 +136,7 @@ def test_the_worst_rig_is_written_as_a_scenario_of_the_experiment(robust_run):
     assert rig.beam.youngs_modulus == pytest.approx(
         robust["worst_rig"]["beam.youngs_modulus"] * load_parameters().beam.youngs_modulus, rel=1e-12)
     assert cfg.plant["io"]["delay_samples"] == pytest.approx(robust["worst_rig"]["io.delay_samples"])
-    assert cfg.controller.actuators.force_constant == 12.0
+    assert cfg.controller.actuators.force_constant_n_per_v == 12.0
     assert cfg.hal.sim["own_actuators"] and cfg.hal.sim["actuators"]["force_constant_n_per_v"] == 12.0
 
 
