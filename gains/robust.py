@@ -48,17 +48,15 @@ from typing import Any
 
 import numpy as np
 
-from beamctl.config.schema import ConfigError, dotted_get, dotted_update, read_yaml, refuse_renamed
+from beamctl.config.schema import ConfigError, dotted_get, read_yaml, refuse_renamed
 from beamctl.gains.rig import RigPlane
 from beamctl.gains.schedule import GainSchedule
 from beamctl.gains.table import GainTable
 from beamctl.models.fe import build_model
-from beamctl.models.iochain import IOChain
-from beamctl.models.params import ModelParameters, parameters_from_dict
+from beamctl.models.params import ModelParameters
+from beamctl.models.rig import KINDS, SPECIAL_KEYS, Rig, rig_with
 
 Progress = Callable[[int, int, str], None]
-KINDS = ("factor", "offset", "value")
-SPECIAL_KEYS = ("io.delay_samples", "actuators.force_constant_n_per_v", "sample_rate_hz")
 MODES = ("search", "full", "margin")
 
 
@@ -242,45 +240,12 @@ def load_box(path: str, params: ModelParameters) -> Box:
 # one rig
 
 
-def _set(node: dict, key: str, rng: Range, value: float) -> None:
-    def new(old: float) -> float:
-        return old * value if rng.kind == "factor" else old + value if rng.kind == "offset" else value
-
-    dotted_update(node, key, new)
-
-
-@dataclass(frozen=True)
-class Rig:
-    """A rig of the box: its model parameters, I/O chain, sample rate and force gain."""
-
-    params: ModelParameters
-    chain: IOChain
-    sample_rate_hz: float
-    force_gain: float
-
-
 def rig_of(table: GainTable, box: Box, values: Mapping[str, float]) -> Rig:
     """The rig that ``values`` (box key -> factor/offset/value) describe, around the table's
-    design model and declared I/O chain."""
-    model = table.model_parameters.to_dict()
-    chain = table.design.io
-    rate = table.design.sample_rate_hz
-    gain = 1.0
-    delay = chain.delay_samples
-    for key, value in values.items():
-        rng = box.parameters[key]
-        if key == "io.delay_samples":
-            delay = value if rng.kind == "value" else delay * value if rng.kind == "factor" else delay + value
-        elif key == "actuators.force_constant_n_per_v":
-            gain = value                    # a factor (checked when the box is read)
-        elif key == "sample_rate_hz":
-            rate = rate * value
-        else:
-            _set(model, key, rng, value)
-    params = parameters_from_dict(model, source="robust check rig")
-    return Rig(params=params, chain=IOChain(delay_samples=max(delay, 0.0), anti_alias=chain.anti_alias,
-                                            reconstruction=chain.reconstruction),
-               sample_rate_hz=rate, force_gain=gain)
+    design model and declared I/O chain (models/rig.py)."""
+    return rig_with(table.model_parameters, table.design.io, table.design.sample_rate_hz,
+                    {key: (box.parameters[key].kind, value) for key, value in values.items()},
+                    source="robust check rig")
 
 
 def check_loads(table_loads: np.ndarray, critical_n: float, box: Box) -> np.ndarray:
@@ -433,19 +398,20 @@ def find_onset(plane: RigPlane, table: GainTable, schedule: GainSchedule, loads:
     return None, previous, largest[1], largest[0], loop.points, tuple(walked), tuple(growths)
 
 
-def _plane(table: GainTable, box: Box, values: Mapping[str, float]) -> RigPlane:
-    rig = rig_of(table, box, values)
+def _plane(rig: Rig) -> RigPlane:
     return RigPlane(build_model(rig.params), rig.chain, rig.sample_rate_hz, rig.force_gain)
 
 
 def evaluate(table: GainTable, schedule: GainSchedule, box: Box, values: Mapping[str, float],
-             mode: str = "full", ratio: float | None = None) -> Onset | Margin:
+             mode: str = "full", ratio: float | None = None, rig: Rig | None = None) -> Onset | Margin:
     """One rig (``values``: box key -> factor/offset/value): its onset, walking the check loads
     (``full``, ``check_loads``) or the coarse ones (``search``, ``search_loads``, keeping the
-    walk's growth rates); or (``margin``) its growth rates at ``ratio`` x its own Fx,cr."""
+    walk's growth rates); or (``margin``) its growth rates at ``ratio`` x its own Fx,cr. ``rig``:
+    the rig itself (models/rig.py), when the caller has built it (``values`` then only label it);
+    by default the box's rig of ``values``."""
     if mode not in MODES:
         raise ValueError(f"mode {mode!r}: expected one of {', '.join(MODES)}")
-    plane = _plane(table, box, values)
+    plane = _plane(rig if rig is not None else rig_of(table, box, values))
     critical = plane.critical_load_n
     values = {k: float(v) for k, v in values.items()}
     if mode == "margin":

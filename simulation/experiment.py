@@ -41,7 +41,6 @@ from beamctl.config.schema import (
     ConfigError,
     boolean,
     choice,
-    dotted_update,
     merge,
     positive,
     read_yaml,
@@ -53,6 +52,7 @@ from beamctl.hal import create as create_backend
 from beamctl.models import build_model, critical_load
 from beamctl.models.modal import Deflection
 from beamctl.models.plant import plant_config
+from beamctl.models.rig import Rig
 from beamctl.rt.config import ALLOCATION_MODES
 from beamctl.rt.controller import Controller
 from beamctl.rt.loop import ControlLoop, StopRequest
@@ -142,27 +142,16 @@ def load_experiment_config(path: str | Path | None) -> tuple[ServiceConfig, dict
 UNLIMITED_STACKS = 4.0
 
 
-def rig_scenario(table: GainTable, table_path: str, rig_si: dict[str, float],
+def rig_scenario(table: GainTable, table_path: str, rig: Rig,
                  force_constant_n_per_v: float = 3.0, stack_scale: float = UNLIMITED_STACKS,
                  ramp: dict | None = None) -> dict:
-    """A scenario of ``beamctl experiment`` for a rig of the robust check (``rig_si``: its model
-    keys in SI units, ``io.delay_samples``, ``sample_rate_hz``, ``actuators.force_gain``) run by
-    the table at ``table_path``: the rig's own beam, I/O delay and DAQ rate, and stacks whose
-    force per volt the controller believes ``force_constant_n_per_v`` x ``stack_scale`` while the
-    rig's are that times its stack gain (force does not limit)."""
-    model = table.model_parameters.to_dict()        # the design's model, the rig's values set
-    plant: dict = {"load": dict(ramp or {})}
-    gain = 1.0
-    for key, value in rig_si.items():
-        if key == "io.delay_samples":
-            plant["io"] = {"delay_samples": float(value)}
-        elif key == "sample_rate_hz":
-            plant["sample_rate_hz"] = float(value)
-        elif key == "actuators.force_gain":
-            gain = float(value)
-        else:
-            dotted_update(model, key, lambda _old, v=float(value): v)
-    plant["model"] = model
+    """A scenario of ``beamctl experiment`` for a rig (models/rig.py: the robust check's worst,
+    say) run by the table at ``table_path``: the rig's own beam, I/O delay and DAQ rate, and
+    stacks whose force per volt the controller believes ``force_constant_n_per_v`` x
+    ``stack_scale`` while the rig's are that times its ``force_gain`` (force does not limit)."""
+    plant: dict = {"load": dict(ramp or {}), "io": {"delay_samples": float(rig.chain.delay_samples)},
+                   "sample_rate_hz": float(rig.sample_rate_hz), "model": rig.params.to_dict()}
+    gain = float(rig.force_gain)
     believed = force_constant_n_per_v * stack_scale
     return {"model": table.model_parameters.to_dict(), "gains": {"table": str(table_path)}, "plant": plant,
             "controller": {"actuators": {"force_constant_n_per_v": believed}},

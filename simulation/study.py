@@ -53,18 +53,18 @@ from typing import Any
 
 import numpy as np
 
-from beamctl.config.schema import ConfigError, dotted_get, dotted_update, merge, nested, read_yaml
+from beamctl.config.schema import ConfigError, dotted_get, merge, nested, read_yaml
 from beamctl.gains.defaults import default_table_path
-from beamctl.gains.robust import Box, Range, evaluate
+from beamctl.gains.robust import Box, evaluate
 from beamctl.gains.schedule import GainSchedule
 from beamctl.gains.table import load_table
 from beamctl.models.params import default_dict
+from beamctl.models.rig import SPECIAL_KEYS, Rig, rig_with
 from beamctl.simulation.experiment import experiment_config, run_mode
 
 KINDS = ("linear", "experiment")
 LAWS = ("uniform", "normal", "truncated-normal")
 SAMPLINGS = ("random", "latin-hypercube")
-SPECIAL_KEYS = ("io.delay_samples", "actuators.force_constant_n_per_v", "sample_rate_hz")
 LINEAR_DEFAULTS = {"max_step_n": 50.0, "fine_step_n": 10.0, "fine_band": 0.04, "resolution_n": 1.0}
 MAX_SAMPLES = 1_000_000
 
@@ -319,28 +319,30 @@ def run_task(task: Task, texts: Mapping[str, str] | None = None) -> dict[str, An
     return row
 
 
-def _linear(task: Task, table) -> dict[str, Any]:
-
-    params: dict[str, Range] = {}
-    values: dict[str, float] = {}
+def drawn_rig(task: Task, table) -> Rig:
+    """The rig of a sample (models/rig.py): the design's model, I/O chain, rate and stacks with
+    the drawn values set as the study file states them (a model key's value replaces the
+    design's, a whole list's multiplies each element; the stacks' and the rate's are absolute)."""
     model = table.model_parameters.to_dict()
+    changes: dict[str, tuple[str, float]] = {}
     for key, v in task.values.items():
         if key.startswith("model."):
-            kind = "factor" if isinstance(dotted_get(model, key[6:]), list) else "value"
-            params[key[6:]] = Range(kind, v, v)
-            values[key[6:]] = v
+            changes[key[6:]] = ("factor" if isinstance(dotted_get(model, key[6:]), list) else "value", v)
         elif key == "actuators.force_constant_n_per_v":
-            params[key] = Range("factor", 0.0, 10.0)
-            values[key] = v / task.controller_force_constant_n_per_v
+            changes[key] = ("factor", v / task.controller_force_constant_n_per_v)
         elif key == "sample_rate_hz":
-            params[key] = Range("factor", 0.0, 10.0)
-            values[key] = v / table.design.sample_rate_hz
-        else:                                   # io.delay_samples
-            params[key] = Range("value", v, v)
-            values[key] = v
-    box = Box(parameters=params, max_step_n=task.linear["max_step_n"], fine_step_n=task.linear["fine_step_n"],
-              fine_band=task.linear["fine_band"], resolution_n=task.linear["resolution_n"])
-    r = evaluate(table, GainSchedule.from_table(table), box, values, mode="full")
+            changes[key] = ("value", v)
+        elif key == "io.delay_samples":
+            changes[key] = ("value", v)
+    return rig_with(table.model_parameters, table.design.io, table.design.sample_rate_hz, changes,
+                    source=f"sample {task.sample}")
+
+
+def _linear(task: Task, table) -> dict[str, Any]:
+    walk = Box(parameters={}, max_step_n=task.linear["max_step_n"], fine_step_n=task.linear["fine_step_n"],
+               fine_band=task.linear["fine_band"], resolution_n=task.linear["resolution_n"])
+    r = evaluate(table, GainSchedule.from_table(table), walk, task.values, mode="full",
+                 rig=drawn_rig(task, table))
     if r.censored:                              # stable to its last load, the table's end
         end = r.stable_to_n
         return {"onset_n": end, "critical_load_n": r.critical_load_n, "ratio": r.ratio, "censored": True,
@@ -350,31 +352,24 @@ def _linear(task: Task, table) -> dict[str, Any]:
             "reason": f"unstable from {r.onset_n:.0f} N{first} ({r.pole_hz:.0f} Hz)"}
 
 
-def _set_model_value(model: dict, key: str, value: float) -> None:
-    """Set a drawn value in a model dict: a scalar key or a list element replaced, a whole list
-    multiplied (the key conventions of the study file)."""
-    whole_list = isinstance(dotted_get(model, key), list)
-    dotted_update(model, key, (lambda old: old * value) if whole_list else (lambda old: value))
-
-
 def _experiment(task: Task, table) -> dict[str, Any]:
 
+    if "sample_rate_hz" in task.values:
+        raise ConfigError("sample_rate_hz", task.values["sample_rate_hz"],
+                          "a linear study (the simulated rig runs at the table's rate)")
     scenario = merge(task.experiment, {"gains": {"table": task.design}, "experiment": {"paper_mode": False},
                                        "hal": {"sim": {"pace": "simulated"}}})
-    rig_model = table.model_parameters.to_dict()       # the design's model, the drawn values set
+    rig = drawn_rig(task, table)                # the same rig a linear study takes
     for key, v in task.values.items():
-        if key.startswith("model."):
-            _set_model_value(rig_model, key[6:], v)
-        elif key == "actuators.force_constant_n_per_v":
-            scenario = merge(scenario, {"hal": {"sim": {"own_actuators": True,
-                                                        "actuators": {"force_constant_n_per_v": v}}}})
-        elif key == "io.delay_samples":
-            scenario = merge(scenario, {"plant": {"io": {"delay_samples": v}}})
-        elif key == "sample_rate_hz":
-            raise ConfigError(key, v, "a linear study (the simulated rig runs at the table's rate)")
-        else:                                   # plant.<key>
+        if key.startswith("plant."):            # the simulated rig's bow, noise, load programme
             scenario = merge(scenario, nested(key, v))
-    scenario = merge(scenario, {"plant": {"model": rig_model}})
+    if "actuators.force_constant_n_per_v" in task.values:
+        own = task.controller_force_constant_n_per_v * rig.force_gain
+        scenario = merge(scenario, {"hal": {"sim": {"own_actuators": True,
+                                                    "actuators": {"force_constant_n_per_v": own}}}})
+    if "io.delay_samples" in task.values:
+        scenario = merge(scenario, {"plant": {"io": {"delay_samples": rig.chain.delay_samples}}})
+    scenario = merge(scenario, {"plant": {"model": rig.params.to_dict()}})
     scenario["model"] = table.model_parameters.to_dict()
     cfg, settings = experiment_config(scenario, f"sample {task.sample}")
     trace = run_mode("interpolate", cfg, settings, table)

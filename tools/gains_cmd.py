@@ -14,7 +14,7 @@ from beamctl.common.outputs import check_dir, check_file, replacing, write_text
 from beamctl.config.schema import ConfigError
 from beamctl.gains.build import build_lqg_table, build_table, closed_loop_checks
 from beamctl.gains.defaults import DESIGNS, default_table_path, paper_table_path
-from beamctl.gains.robust import DEFAULT_BOX, describe, load_box, robust_check
+from beamctl.gains.robust import DEFAULT_BOX, box_from_dict, describe, load_box, rig_of, robust_check
 from beamctl.gains.table import GainTable, changed_file_message, load_table, write_table
 from beamctl.models import build_model
 from beamctl.reports import plots
@@ -228,7 +228,8 @@ def _write_worst_rig(out, path: str, table: GainTable, robust: dict) -> None:
     import yaml
 
 
-    scenario = rig_scenario(table, str(Path(path).resolve()), robust["worst_rig_si"])
+    rig = rig_of(table, box_from_dict(robust["box"], table.model_parameters), robust["worst_rig"])
+    scenario = rig_scenario(table, str(Path(path).resolve()), rig)
     onset = ("stable to the end of the table" if robust["censored"]
              else f"unstable from {robust['onset_N']:.0f} N")
     header = (f"# The worst rig the robust check of {path} found (seed {robust['box']['seed']}): onset / "

@@ -347,12 +347,12 @@ def test_the_shipped_design_holds_the_worst_rigs_of_the_box_to_their_own_critica
     times the rig's stack gain (force does not limit: the voltages stay inside 0..150 V). The load
     ramps at 50 N/s from 2200 N through the rig's own Fx,cr; the beam must not pass 1 mm before it."""
     from beamctl.gains.defaults import default_table_path
-    from beamctl.gains.robust import DEFAULT_BOX, rig_si
+    from beamctl.gains.robust import DEFAULT_BOX, rig_of
     from beamctl.gains.table import load_table
     from beamctl.simulation.experiment import rig_scenario
 
     table = load_table(default_table_path())
-    rig = rig_si(table, DEFAULT_BOX, WORST_RIGS[name])
+    rig = rig_of(table, DEFAULT_BOX, WORST_RIGS[name])
     scenario = rig_scenario(table, str(default_table_path()), rig)
     own = critical_load(build_model(plant_parameters(experiment_config(scenario)[0])))
     # from 2200 N: the bowed beam's sag there (0.4 mm at most in the box) is pulled in before the

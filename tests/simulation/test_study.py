@@ -237,13 +237,27 @@ def test_a_worker_needs_no_copy_of_the_design_files(study, tmp_path):
 def test_a_drawn_list_element_keeps_the_design_s_other_elements():
     """An experiment sample builds its rig from the design's own model (a fitted one, say), not
     from Table 1: drawing damping.ratios[1] leaves the design's ratios[0] as it was."""
-    from beamctl.simulation.study import _set_model_value
+    import dataclasses
 
-    design = {"damping": {"ratios": [0.0225, 0.00675]}, "beam": {"youngs_modulus": 77.3e9}}
-    _set_model_value(design, "damping.ratios[1]", 0.005)
-    assert design["damping"]["ratios"] == [0.0225, 0.005]
-    _set_model_value(design, "damping.ratios", 2.0)
-    assert design["damping"]["ratios"] == [0.045, 0.01], "a whole list is scaled"
+    from beamctl.gains.defaults import default_table_path
+    from beamctl.gains.table import load_table
+    from beamctl.models.params import parameters_from_dict
+    from beamctl.simulation.study import drawn_rig, tasks
+
+    table = load_table(default_table_path())
+    model = table.model_parameters.to_dict()
+    model["damping"]["ratios"] = [0.0225, 0.00675]          # a design of its own damping
+    table = dataclasses.replace(table, model_parameters=parameters_from_dict(model))
+
+    def ratios(key: str, value: float) -> list[float]:
+        law = {"law": "uniform", "low": value, "high": value * (1 + 1e-12)}
+        study = study_from_dict({"study": {"kind": "linear", "samples": 1, "seed": 1,
+                                           "parameters": {key: law}}})
+        return drawn_rig(tasks(study)[0], table).params.to_dict()["damping"]["ratios"]
+
+    assert ratios("model.damping.ratios[1]", 0.005) == pytest.approx([0.0225, 0.005], rel=1e-11)
+    assert ratios("model.damping.ratios", 2.0) == pytest.approx([0.045, 0.0135], rel=1e-11), (
+        "a whole list is scaled")
 
 
 def _linear_row(design: str, youngs_modulus: float) -> dict:
