@@ -265,6 +265,7 @@ class ControlLoop:
 
     def _signal_decided(self) -> None:
         command, self._signal_command = self._signal_command, None
+        self._rearm_requested = False   # signals while it was pending asked for the same re-arm
         if self.on_signal_command is not None:
             self.on_signal_command(command)
 
@@ -275,6 +276,10 @@ class ControlLoop:
             command, self._command = self._command, None
         if command is not None and command._take():
             command._decide(f"the control loop ended ({self.controller.state.name}) before carrying it out")
+        if self._signal_command is None and self._rearm_requested:    # signalled, not yet posted
+            self._signal_command = OperatorCommand("rearm")
+            self._signal_command._decide(f"the control loop ended ({self.controller.state.name}) "
+                                         "before carrying it out")
         if self._signal_command is not None and self._signal_command.outcome:
             self._signal_decided()
 

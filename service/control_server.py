@@ -62,6 +62,7 @@ class ControlServer:
         self._identity = (st.st_dev, st.st_ino)
         self.group = _group_name(st.st_gid)
         self._commands: queue.Queue = queue.Queue(max_queued_commands)
+        self._later: queue.SimpleQueue[str] = queue.SimpleQueue()    # lines for log_later
         self._closing = threading.Event()
         self._threads: list[threading.Thread] = []
         self._loop: ControlLoop | None = None
@@ -83,6 +84,22 @@ class ControlServer:
         for thread in self._threads:
             thread.start()
         return self
+
+    def log_later(self, line: str) -> None:
+        """Log ``line`` from the server's own thread, soon: for the control loop's thread, which
+        must not wait for the log's output (journald can block a write) nor fail with it."""
+        self._later.put(line)
+
+    def _log_pending(self) -> None:
+        while True:
+            try:
+                line = self._later.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                self._log(line)
+            except Exception:           # the log is gone: the service carries on without it
+                pass
 
     def close(self) -> None:
         """Stop answering (a command under way is answered first) and remove the socket file if
@@ -193,10 +210,12 @@ class ControlServer:
 
     def _carry_out_commands(self) -> None:
         while True:
+            self._log_pending()
             try:
                 conn, name, table = self._commands.get(timeout=0.2)
             except queue.Empty:
                 if self._closing.is_set():
+                    self._log_pending()
                     return
                 continue
             try:

@@ -161,10 +161,11 @@ class Service:
         return self.outcome
 
     def _log_signal_command(self, command: OperatorCommand) -> None:
-        """The outcome of SIGUSR1's re-arm, as the control socket logs its commands."""
+        """The outcome of SIGUSR1's re-arm, as the control socket logs its commands (called in the
+        control loop: the line is written by the control socket's thread)."""
         outcome = (f"carried out ({command.transition})" if command.outcome == "carried out"
                    else f"refused: {command.refusal}")
-        self.log(f"operator {command.name} (SIGUSR1): {outcome}")
+        self.server.log_later(f"operator {command.name} (SIGUSR1): {outcome}")
 
     def _summary(self) -> dict[str, Any]:
         o = self.outcome

@@ -6,7 +6,7 @@ as the rig: per sample the sim backend's measurement of the plant, the engine's 
 law, allocation and clamp, every fault decision), the stacks' forces on the rig and the plant's
 step, and the experiment's monitor. ``run_cycles`` runs these cycles in one compiled loop that
 calls the engine's ``cycle`` itself; only the plant's and the monitor's arithmetic is written
-here (the plant's as models/plant.py's ``measure`` and ``step``, tests/tools/test_simkernel.py
+here (the plant's as models/plant.py's ``measure`` and ``step``, tests/simulation/test_simkernel.py
 compares the two runs).
 
 It hands over to the loop after any cycle that leaves the controller neither RUNNING nor ARMED

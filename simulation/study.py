@@ -333,6 +333,9 @@ def drawn_rig(task: Task, table) -> Rig:
         elif key == "sample_rate_hz":
             changes[key] = ("value", v)
         elif key == "io.delay_samples":
+            if not v >= 0.0:            # a rig runs a drawn delay as drawn or not at all
+                raise ConfigError(key, v, "a delay of 0 samples or more (the law drew below 0)",
+                                  f"sample {task.sample}")
             changes[key] = ("value", v)
     return rig_with(table.model_parameters, table.design.io, table.design.sample_rate_hz, changes,
                     source=f"sample {task.sample}")

@@ -451,3 +451,27 @@ def test_real_time_set_up_comes_before_the_hal_opens(table, monkeypatch):
     hal.opened = events
     ControlLoop(Controller(table, config), hal, max_cycles=5).run(acquire_rt=True)
     assert events == ["real-time", "open"], events
+
+
+def test_signals_while_a_signal_s_rearm_is_pending_are_that_rearm(table):
+    """SIGUSR1 twice more while the first re-arm waits for a sample (the bus is silent for a few
+    samples): one re-arm carried out and told, no second one refused afterwards."""
+    # a fault at the 300th sample, the ramp done by about 430; the bus silent for the 597th to
+    # the 602nd sample, just after the first SIGUSR1
+    script = [DEFLECTED] * 300 + [((np.nan, 0.0, 0.0, 0.0), 1500.0)] + [DEFLECTED] * 296 + [None] * 6
+    loop, _ = _loop(table, script, default=oscillating, start_ramp_time_s=0.05)
+    loop.stop_on_fault = False
+    told = []
+    loop.on_signal_command = told.append
+
+    def on_cycle(lp):
+        if lp.cycles >= 596 and lp.controller.state == State.FAULT:
+            lp.request_rearm()
+        if lp.cycles > 700:
+            lp.request_stop("test")
+
+    loop.on_cycle = on_cycle
+    result = _run(loop)
+    assert [(c.name, c.outcome) for c in told] == [("rearm", "carried out")], [
+        (c.outcome, c.refusal) for c in told]
+    assert result.state == "STOPPED" and result.fault == "NONE", result

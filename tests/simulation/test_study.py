@@ -346,3 +346,18 @@ def test_a_censored_row_is_never_a_failure_of_the_failure_probability(tmp_path):
 
     paths = plots.study_figures(rows, ["t.yaml"], tmp_path)
     assert [p.read_bytes()[:4] for p in paths] == [b"\x89PNG"] * 2
+
+
+def test_a_delay_drawn_below_zero_is_an_invalid_rig_not_a_rig_without_delay():
+    """A normal law can draw a negative delay: the sample's row says the rig is invalid (its
+    drawn value would otherwise stand in the row for a rig run with no delay)."""
+    from beamctl.gains.defaults import default_table_path
+    from beamctl.gains.table import load_table
+    from beamctl.simulation.study import drawn_rig, tasks
+
+    law = {"law": "uniform", "low": -2.0, "high": -1.9}
+    for kind in ("linear", "experiment"):
+        study = study_from_dict({"study": {"kind": kind, "samples": 1, "seed": 1,
+                                           "parameters": {"io.delay_samples": law}}})
+        with pytest.raises(ConfigError, match="io.delay_samples"):
+            drawn_rig(tasks(study)[0], load_table(default_table_path()))
