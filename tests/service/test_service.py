@@ -100,3 +100,38 @@ def test_request_stop_ends_a_running_service_with_the_stacks_at_bias(tmp_path):
     assert outcome.result.state == "STOPPED" and outcome.result.stop_requested_by, outcome.summary
     _, rows = read_telemetry(tmp_path / "run.btl")
     np.testing.assert_array_equal(rows[-1, V], BIAS_V, err_msg="stopped with the stacks off bias")
+
+
+def test_sigusr1_s_rearm_is_logged_off_the_loop_and_a_failing_log_does_not_stop_control(tmp_path):
+    """The re-arm a signal asks for (``loop.request_rearm``, what SIGUSR1 calls) is decided in the
+    loop and logged by the control socket's thread: a log that fails (stderr gone) costs the line,
+    not the run. The load cell reads 1300 N against a 1100 N range, so the service faults at once;
+    once the load is back in range and the stacks at bias, the re-arm runs the controller again."""
+    lines: list[str] = []
+
+    def failing_log(line: str) -> None:
+        lines.append(line)
+        raise BrokenPipeError("stderr is gone")
+
+    config = {**SIM, "controller": {"pacing": "sample", "safety": {"load_range_n": [-200.0, 1100.0]}},
+              "plant": {**SIM["plant"], "load": {"start": 1300.0, "end": 1000.0, "rate": 400.0}}}
+    svc = Service(service_config(config), tmp_path / "run.btl", control_socket=tmp_path / "ctl.sock",
+                  acquire_rt=False, log=failing_log)
+    svc.start()
+    try:
+        sock = tmp_path / "ctl.sock"
+        _wait_for(sock, "FAULT at bias with the load back in range",
+                  lambda s: s["state"] == "FAULT" and s["at_bias"] and s["axial_load_n"] < 1090.0)
+        svc.loop.request_rearm()
+        running = _wait_for(sock, "RUNNING after the re-arm", lambda s: s["state"] == "RUNNING")
+        assert running["fault"] == "NONE", running
+        deadline = time.monotonic() + DEADLINE_S
+        while not lines and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert lines == ["operator rearm (SIGUSR1): carried out (FAULT -> RUNNING)"], lines
+        later = _status(sock)
+        assert later["state"] == "RUNNING" and later["cycles"] > running["cycles"], later
+    finally:
+        svc.request_stop()
+        outcome = svc.join(DEADLINE_S)
+    assert outcome.result.state == "STOPPED", outcome.summary
