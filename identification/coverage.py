@@ -1,0 +1,165 @@
+"""How well identification and the model fit recover a rig that the model only approximates,
+over many seeded simulated rigs: the check of the fit's errors and of its confidence intervals.
+
+Each rig is drawn from its seed (``draw_rig``): its beam and supports scattered about Table 1
+(E x[0.97, 1.03], kr, kl and kp x[0.8, 1.2], the damping ratios together x[0.5, 1.5]), stacks of
+2.7 to 3.3 N/V where the controller believes 3.0, a finer FE mesh than the model's (``nodes``),
+strain and load-cell noise, an eccentric load and an initial bow in directions of its own. The
+rig is identified on the simulated backend at each of ``loads_n`` (identification/identify.py,
+the same run as ``beamctl identify``), the measurements are fitted together from Table 1
+(models/fit.py, ``parameters``), and each fitted value is compared with the rig's own: its
+relative error and its z-score (error / the fit's standard error). A 95 % interval (1.96 standard
+errors) covers the truth where |z| <= 1.96; ``summarise`` counts how often, per parameter.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass, field
+from multiprocessing import get_context
+from typing import Any
+
+import numpy as np
+
+from beamctl.identification.identify import IdentifySettings, identify
+from beamctl.models.fit import ALIASES, FitError, FitSettings, fit, resolve_keys
+from beamctl.models.params import load_parameters
+from beamctl.service.setup import load_gain_table, service_config
+
+Z_95 = 1.959964                 # the two-sided 95 % point of the normal distribution
+
+
+@dataclass(frozen=True)
+class CoverageSettings:
+    """The rigs of a coverage check and how each is identified and fitted."""
+
+    rigs: int = 20
+    seed: int = 1                   # rig i has the seed ``seed + i``
+    loads_n: tuple[float, ...] = (2000.0,)
+    averages: int = 8
+    parameters: tuple[str, ...] = ("E", "kr", "kl", "kp", "damping", "force_constant")
+    nodes: int = 71                 # the rig's FE nodes (Table 1's model: 35)
+    strain_noise: float = 3e-7
+    load_noise_n: float = 2.0
+    eccentricity_m: float = 2e-4
+    bow_m: float = 1e-4
+    # factor ranges about Table 1 (uniform); the damping ratios move together
+    scatter: dict[str, tuple[float, float]] = field(default_factory=lambda: {
+        "beam.youngs_modulus": (0.97, 1.03), "supports.rotational_stiffness": (0.8, 1.2),
+        "supports.lateral_stiffness": (0.8, 1.2), "supports.actuator_stiffness": (0.8, 1.2),
+        "damping.ratios": (0.5, 1.5)})
+    force_constant_n_per_v: tuple[float, float] = (2.7, 3.3)
+
+    def __post_init__(self) -> None:
+        if self.rigs < 1 or self.averages < 3 or self.nodes < 3 or not self.loads_n:
+            raise ValueError(f"coverage settings: at least 1 rig, 3 averages, 3 nodes and one load "
+                             f"(rigs {self.rigs}, averages {self.averages}, nodes {self.nodes}, "
+                             f"loads {self.loads_n})")
+
+
+def draw_rig(settings: CoverageSettings, index: int) -> tuple[dict[str, Any], dict[str, Any]]:
+    """(the rig's true values by fit key, the service configuration of its simulated rig)."""
+    rng = np.random.default_rng(settings.seed + index)
+    table1 = load_parameters().to_dict()
+    truth: dict[str, Any] = {}
+    model: dict[str, Any] = {"fe": {"nodes": settings.nodes}}
+    for key, (low, high) in settings.scatter.items():
+        factor = float(rng.uniform(low, high))
+        section, name = key.split(".")
+        value = table1[section][name]
+        value = [v * factor for v in value] if isinstance(value, list) else value * factor
+        truth[key] = value
+        model.setdefault(section, {})[name] = value
+    k = float(rng.uniform(*settings.force_constant_n_per_v))
+    truth["actuators.force_constant_n_per_v"] = k
+    rig = {"hal": {"sim": {"pace": "simulated", "own_actuators": True,
+                           "actuators": {"force_constant_n_per_v": k}}},
+           "plant": {"noise": {"strain": settings.strain_noise, "load": settings.load_noise_n,
+                               "seed": settings.seed + index},
+                     "eccentricity": {"amplitude": settings.eccentricity_m,
+                                      "angle_deg": float(rng.uniform(0.0, 360.0))},
+                     "bow": {"amplitude": settings.bow_m, "angle_deg": float(rng.uniform(0.0, 360.0))},
+                     "model": model}}
+    return truth, rig
+
+
+def run_rig(settings: CoverageSettings, index: int) -> dict[str, Any]:
+    """One rig identified and fitted: per fitted key its value, standard error, relative error
+    and z-score against the rig's own value (lists element by element); ``error`` when the fit
+    refused (then no values)."""
+    truth, rig = draw_rig(settings, index)
+    cfg = service_config(rig, f"coverage rig {index} (seed {settings.seed + index})")
+    table = load_gain_table(cfg)
+    data = [identify(cfg, table, IdentifySettings(load_n=load, averages=settings.averages))[0]
+            for load in settings.loads_n]
+    row: dict[str, Any] = {"rig": index, "seed": settings.seed + index}
+    try:
+        result = fit(load_parameters(), data, FitSettings(parameters=settings.parameters))
+    except FitError as exc:
+        row["error"] = str(exc)
+        return row
+    for key, value in result.values.items():
+        if key not in truth:
+            continue
+        values = value if isinstance(value, list) else [value]
+        true = truth[key] if isinstance(truth[key], list) else [truth[key]]
+        std = result.std_errors[key] if isinstance(value, list) else [result.std_errors[key]]
+        for i, (v, t, s) in enumerate(zip(values, true, std, strict=True)):
+            name = f"{key}[{i}]" if isinstance(value, list) else key
+            row[name] = {"value": v, "true": t, "std_error": s, "relative_error": v / t - 1.0,
+                         "z": (v - t) / s if s > 0 else math.inf}
+    row["correlations"] = result.correlations
+    return row
+
+
+def _run_one(args: tuple[CoverageSettings, int]) -> dict[str, Any]:
+    # a worker process of this check: one BLAS thread, Ctrl-C is the caller's to handle
+    import signal
+
+    from threadpoolctl import threadpool_limits
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    with threadpool_limits(1):
+        return run_rig(*args)
+
+
+def run(settings: CoverageSettings, workers: int = 1,
+        progress: Callable[[int, int], None] | None = None) -> Iterator[dict[str, Any]]:
+    """The rows of every rig as they finish (in the rigs' order), in ``workers`` processes."""
+    jobs = [(settings, i) for i in range(settings.rigs)]
+    if workers <= 1:
+        for done, job in enumerate(jobs, 1):
+            row = run_rig(*job)
+            if progress:
+                progress(done, len(jobs))
+            yield row
+        return
+    with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
+        for done, row in enumerate(pool.map(_run_one, jobs), 1):
+            if progress:
+                progress(done, len(jobs))
+            yield row
+
+
+def summarise(rows: Sequence[dict[str, Any]], settings: CoverageSettings) -> dict[str, Any]:
+    """Per fitted quantity (a list key's elements together): rigs, the largest relative error
+    and how many of the 95 % intervals cover the truth; the settings and the refused fits."""
+    keys = resolve_keys(settings.parameters, load_parameters())
+    per: dict[str, dict[str, Any]] = {}
+    for key in keys:
+        cells = [c for r in rows for name, c in r.items()
+                 if isinstance(c, dict) and (name == key or name.startswith(key + "["))]
+        if not cells:
+            continue
+        covered = sum(abs(c["z"]) <= Z_95 for c in cells)
+        per[key] = {"values": len(cells), "max_relative_error": max(abs(c["relative_error"]) for c in cells),
+                    "covered_95": covered, "coverage_95": covered / len(cells),
+                    "max_abs_z": max(abs(c["z"]) for c in cells)}
+    aliases = {v: k for k, v in ALIASES.items()}
+    return {"settings": {**asdict(settings), "loads_n": list(settings.loads_n),
+                         "parameters": list(settings.parameters)},
+            "rigs": len(rows),
+            "refused": [{"rig": r["rig"], "error": r["error"]} for r in rows if "error" in r],
+            "parameters": {aliases.get(k, k): v for k, v in per.items()}}
