@@ -25,7 +25,7 @@ import numpy as np
 
 from beamctl.identification.identify import IdentifySettings, identify
 from beamctl.models.fit import ALIASES, FitError, FitSettings, fit, resolve_keys
-from beamctl.models.params import load_parameters
+from beamctl.models.params import ModelParameters, load_parameters, parameters_from_dict
 from beamctl.service.setup import load_gain_table, service_config
 
 Z_95 = 1.959964                 # the two-sided 95 % point of the normal distribution
@@ -41,6 +41,7 @@ class CoverageSettings:
     averages: int = 8
     parameters: tuple[str, ...] = ("E", "kr", "kl", "kp", "damping", "force_constant")
     nodes: int = 71                 # the rig's FE nodes (Table 1's model: 35)
+    model_nodes: int = 0            # the fitted model's FE nodes (0: Table 1's)
     strain_noise: float = 3e-7
     load_noise_n: float = 2.0
     eccentricity_m: float = 2e-4
@@ -85,6 +86,16 @@ def draw_rig(settings: CoverageSettings, index: int) -> tuple[dict[str, Any], di
     return truth, rig
 
 
+def start_model(settings: CoverageSettings) -> ModelParameters:
+    """Table 1, on ``model_nodes`` FE nodes where given: the model the fit starts from."""
+    start = load_parameters()
+    if not settings.model_nodes:
+        return start
+    d = start.to_dict()
+    d["fe"]["nodes"] = settings.model_nodes
+    return parameters_from_dict(d, source="coverage start model")
+
+
 def run_rig(settings: CoverageSettings, index: int) -> dict[str, Any]:
     """One rig identified and fitted: per fitted key its value, standard error, relative error
     and z-score against the rig's own value (lists element by element); ``error`` when the fit
@@ -96,7 +107,7 @@ def run_rig(settings: CoverageSettings, index: int) -> dict[str, Any]:
             for load in settings.loads_n]
     row: dict[str, Any] = {"rig": index, "seed": settings.seed + index}
     try:
-        result = fit(load_parameters(), data, FitSettings(parameters=settings.parameters))
+        result = fit(start_model(settings), data, FitSettings(parameters=settings.parameters))
     except FitError as exc:
         row["error"] = str(exc)
         return row
@@ -121,13 +132,19 @@ def _run_one(args: tuple[CoverageSettings, int]) -> dict[str, Any]:
     from threadpoolctl import threadpool_limits
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    settings, index = args
     with threadpool_limits(1):
-        return run_rig(*args)
+        try:
+            return run_rig(settings, index)
+        except Exception as exc:    # this rig's, in its row: the others still run
+            return {"rig": index, "seed": settings.seed + index, "error": f"{type(exc).__name__}: {exc}"}
 
 
 def run(settings: CoverageSettings, workers: int = 1,
         progress: Callable[[int, int], None] | None = None) -> Iterator[dict[str, Any]]:
-    """The rows of every rig as they finish (in the rigs' order), in ``workers`` processes."""
+    """The rows of every rig as they finish (in the rigs' order), in ``workers`` processes. The
+    fitted parameters are checked first (ConfigError naming the unknown one)."""
+    resolve_keys(settings.parameters, start_model(settings))
     jobs = [(settings, i) for i in range(settings.rigs)]
     if workers <= 1:
         for done, job in enumerate(jobs, 1):
@@ -136,11 +153,16 @@ def run(settings: CoverageSettings, workers: int = 1,
                 progress(done, len(jobs))
             yield row
         return
-    with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
+    pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn"))
+    try:
         for done, row in enumerate(pool.map(_run_one, jobs), 1):
             if progress:
                 progress(done, len(jobs))
             yield row
+    except BaseException:           # Ctrl-C, a closed generator: the rigs not begun are not run
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown()
 
 
 def summarise(rows: Sequence[dict[str, Any]], settings: CoverageSettings) -> dict[str, Any]:

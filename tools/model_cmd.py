@@ -17,7 +17,7 @@ from beamctl.models.fe import FEModel
 from beamctl.models.modal import ModalModel
 from beamctl.reports import plots
 from beamctl.service.setup import load_model_file
-from beamctl.tools import fit_cmd
+from beamctl.tools import coverage_cmd, fit_cmd
 
 TABLE_LOADS_N = (0, 500, 1000, 1500, 2000, 2500, 3000)
 FIGURE6_LOAD_N = 2000.0
@@ -40,7 +40,9 @@ def add_parser(sub) -> None:
                    help="with --frf: the fitted model (`beamctl model fit --out`), drawn after the fit "
                         "against --config's model before it")
     p.set_defaults(run=run, model_command=None)
-    fit_cmd.add_parser(p.add_subparsers(dest="model_command", metavar="ACTION"))
+    actions = p.add_subparsers(dest="model_command", metavar="ACTION")
+    fit_cmd.add_parser(actions)
+    coverage_cmd.add_parser(actions)
 
 
 def summary(model: FEModel, reduced: ModalModel) -> dict:

@@ -1,6 +1,7 @@
 """The coverage check of identification and the fit (identification/coverage.py): seeded rigs
 that the model only approximates, and what the summary counts."""
 
+import json
 import math
 
 import pytest
@@ -54,3 +55,18 @@ def test_one_rig_identified_and_fitted_gives_errors_and_z_scores_that_the_summar
 def test_settings_that_cannot_be_run_are_refused():
     with pytest.raises(ValueError, match="averages"):
         CoverageSettings(averages=1)
+
+
+def test_the_command_prints_the_summary_writes_the_rows_and_refuses_an_unknown_parameter(tmp_path, capsys):
+    from beamctl.tools.cli import main
+
+    out = tmp_path / "coverage.json"
+    assert main(["model", "coverage", "--rigs", "1", "--seed", "7", "--averages", "3", "--workers", "1",
+                 "--out", str(out), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    written = json.loads(out.read_text())
+    assert written["summary"] == summary and len(written["rigs"]) == 1
+    assert summary["rigs"] == 1 and summary["parameters"]["E"]["values"] == 1
+    assert main(["model", "coverage", "--params", "E,bogus", "--rigs", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "--params" in err and "bogus" in err and len(err.strip().splitlines()) == 1, err
