@@ -57,6 +57,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     from beamctl.gains.build import tool_version
     from beamctl.tools import (
         bench_cmd,
+        commission_cmd,
         experiment_cmd,
         gains_cmd,
         identify_cmd,
@@ -86,6 +87,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     monitor_cmd.add_parser(sub)
     bench_cmd.add_parser(sub)
     study_cmd.add_parser(sub)
+    commission_cmd.add_parser(sub)
     return parser
 
 

@@ -1,0 +1,364 @@
+"""Commissioning a rig: from a rig nobody has characterised to a gain table that holds it, in
+one folder, step by step:
+
+1. ``identify``: frequency responses at each load (``frf_<load>N.npz``; the same run as
+   ``beamctl identify``);
+2. ``fit``: the model fitted to them (``fitted.yaml`` as ``beamctl model fit`` writes it, and
+   ``fit.json`` with each parameter's 95 % interval);
+3. ``box``: the uncertainty box the design must hold (``box.yaml``, see ``calibrated_box``);
+4. ``gains``: the gain table designed on the fitted model (``gains.yaml``) and, unless left out,
+   the robust check over the box (``robust.json``);
+5. ``experiment``: the simulated experiment on the rig with that table (``experiment/``); against
+   real hardware the workflow stops before it and says what to do next;
+6. ``report``: ``report.html`` with the figures and numbers of every step.
+
+Each step writes its files whole (under a temporary name, moved into place when complete) and
+is then recorded in ``commission.json``; run again on the same folder with the same
+configuration and settings, the workflow goes on where it stopped (an interrupted step is run
+again, the ones recorded are kept). A folder of another rig or other settings is refused.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import html
+import json
+import math
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from beamctl.common.outputs import check_dir, replacing, write_text
+from beamctl.common.signals import Interrupted
+from beamctl.config.schema import ConfigError, read_yaml
+from beamctl.gains.build import build_lqg_table
+from beamctl.gains.robust import box_from_dict, robust_check
+from beamctl.gains.table import write_table
+from beamctl.identification.fit_files import fitted_document, load_fitted
+from beamctl.identification.frf_files import read_frf, write_frf
+from beamctl.identification.identify import IdentifySettings, identify
+from beamctl.models import build_model, critical_load
+from beamctl.models.fit import FitError, FitSettings, fit, resolve_keys
+from beamctl.reports import plots
+from beamctl.rt.stop import StopRequest
+from beamctl.service.setup import load_gain_table, service_config
+from beamctl.simulation.experiment import experiment_config, experiment_tables, run_experiment
+
+STEPS = ("identify", "fit", "box", "gains", "experiment", "report")
+STATE = "commission.json"
+Z_95 = 1.959964
+# The calibrated box: each fitted parameter within INFLATION x its 95 % interval of the fitted
+# value, and never narrower than FLOOR (the fit's intervals count the measurement's noise, not
+# the model's own error: `beamctl model coverage` finds them too narrow for kr, kl and kp); what
+# identification cannot see, as box B has it.
+INFLATION = 3.0
+FLOOR = {"beam.youngs_modulus": 0.01, "supports.rotational_stiffness": 0.10,
+         "supports.lateral_stiffness": 0.10, "supports.actuator_stiffness": 0.10, "damping.ratios": 0.30}
+UNSEEN = {"supports.rotational_stiffness": {"factor": [0.8, 1.2]},
+          "supports.lateral_stiffness": {"factor": [0.8, 1.2]},
+          "supports.actuator_stiffness": {"factor": [0.8, 1.2]},
+          "damping.ratios": {"factor": [0.5, 2.0]},
+          "actuators.force_constant_n_per_v": {"factor": [0.9, 1.1]},     # the stacks' drift
+          "io.delay_samples": {"value": [0.0, 1.0]},
+          "sensors.strain_gauge_positions[0]": {"offset": [-1e-3, 1e-3]},
+          "sensors.strain_gauge_positions[1]": {"offset": [-1e-3, 1e-3]},
+          "sample_rate_hz": {"factor": [0.99, 1.01]}}
+
+
+class CommissionError(Exception):
+    """A step found that the rig cannot be commissioned this way (one line, what to do)."""
+
+
+@dataclass(frozen=True)
+class CommissionSettings:
+    loads_n: tuple[float, ...] = (2000.0,)
+    averages: int = 8
+    parameters: tuple[str, ...] = ("E", "kr", "damping", "force_constant")
+    robust: bool = True
+    grid_n: tuple[float, float, float] | None = None     # the table's load grid (default: the design's)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["loads_n"] = list(self.loads_n)
+        d["parameters"] = list(self.parameters)
+        d["grid_n"] = list(self.grid_n) if self.grid_n else None
+        return d
+
+
+def calibrated_box(fitted: dict[str, Any], std_errors: dict[str, Any]) -> dict[str, Any]:
+    """The box (a ``box:`` mapping) around the fitted model: a fitted parameter within
+    INFLATION x 1.96 of its relative standard error of the fitted value, at least FLOOR; the
+    others and what identification cannot see as in UNSEEN."""
+    parameters: dict[str, Any] = dict(UNSEEN)
+    for key in fitted:
+        if key not in FLOOR:
+            continue
+        values = fitted[key] if isinstance(fitted[key], list) else [fitted[key]]
+        errors = std_errors[key] if isinstance(std_errors[key], list) else [std_errors[key]]
+        rel = max(abs(s / v) for s, v in zip(errors, values, strict=True) if v)
+        half = max(INFLATION * Z_95 * rel, FLOOR[key])
+        parameters[key] = {"factor": [round(max(1.0 - half, 0.05), 6), round(1.0 + half, 6)]}
+    return {"parameters": parameters}
+
+
+class Commission:
+    """One commissioning folder (see the module docstring). ``log`` takes a line per step;
+    ``progress(done, total, label)`` the progress within a step."""
+
+    def __init__(self, config_path: str | Path, out: str | Path, settings: CommissionSettings,
+                 log: Callable[[str], None] = print, progress: Callable[..., None] | None = None,
+                 stop: StopRequest | None = None) -> None:
+        self.config_path = Path(config_path)
+        self.cfg = service_config(read_yaml(self.config_path), str(self.config_path))     # refused first
+        text = self.config_path.read_bytes()
+        self.settings = settings
+        resolve_keys(settings.parameters, self.cfg.model)          # refused before the rig moves
+        self.out = check_dir(out, "--out")
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.log = log
+        self._report_progress = progress
+        self.stop = stop
+        self.identity = {"config": str(self.config_path.resolve()),
+                         "config_sha256": hashlib.sha256(text).hexdigest(), "settings": settings.to_dict()}
+        state = self.out / STATE
+        self.done: list[str] = []
+        if state.exists():
+            try:
+                recorded = json.loads(state.read_text())
+                same = {k: recorded[k] for k in self.identity} == self.identity
+                done = list(recorded["done"])
+            except (ValueError, KeyError, TypeError):
+                raise ConfigError("--out", str(self.out), f"a commissioning folder ({STATE} there is "
+                                  "damaged: move it away to start again)") from None
+            if not same:
+                raise ConfigError("--out", str(self.out), "a new folder, or the folder of this "
+                                  "configuration and these settings (it holds another commissioning)")
+            self.done = [s for s in done if s in STEPS]
+        elif any(self.out.iterdir()):
+            raise ConfigError("--out", str(self.out), "an empty folder or one this workflow began")
+
+    # -- running -----------------------------------------------------------------------------------
+    def progress(self, done: int, total: int, label: str = "") -> None:
+        """A step's progress; where a stop was asked for (Ctrl-C: ``stop``), the step ends here
+        (Interrupted) with nothing of it written. The steps that drive the rig (identify,
+        experiment) read the request themselves and ramp the stacks to bias first."""
+        self._check_stop()
+        if self._report_progress is not None:
+            self._report_progress(done, total, label)
+
+    def _check_stop(self) -> None:
+        if self.stop is not None and self.stop.reason:
+            raise Interrupted(self.stop.signal_name or self.stop.reason, "the commissioning")
+
+    def run(self) -> dict[str, Any]:
+        """Every step not done yet, in order; the summary of the folder."""
+        for number, step in enumerate(STEPS, 1):
+            self._check_stop()
+            if step in self.done:
+                self.log(f"step {number}/{len(STEPS)} {step}: done before, kept")
+                continue
+            self.log(f"step {number}/{len(STEPS)} {step} ...")
+            note = getattr(self, f"_{step}")()
+            self.done.append(step)
+            write_text(self.out / STATE, json.dumps({**self.identity, "done": self.done}, indent=1) + "\n")
+            self.log(f"step {number}/{len(STEPS)} {step}: {note}")
+            if step == "experiment" and self.cfg.hal.backend != "sim":
+                break
+        return self.summary()
+
+    def _frf_paths(self) -> list[Path]:
+        return [self.out / f"frf_{load:g}N.npz" for load in self.settings.loads_n]
+
+    def _identify(self) -> str:
+        table = load_gain_table(self.cfg)
+        for path, load in zip(self._frf_paths(), self.settings.loads_n, strict=True):
+            settings = IdentifySettings(load_n=load, averages=self.settings.averages)
+            data, _ = identify(self.cfg, table, settings, self.progress, self.stop)
+            write_frf(data, path)
+        return f"{len(self.settings.loads_n)} measurement(s): {', '.join(p.name for p in self._frf_paths())}"
+
+    def _fit(self) -> str:
+        data = [read_frf(p) for p in self._frf_paths()]
+        start = self.cfg.model
+        resolve_keys(self.settings.parameters, start)
+        try:
+            result = fit(start, data, FitSettings(parameters=self.settings.parameters),
+                         progress=lambda n, cost: self.progress(n, n + 1, f"evaluation {n}, cost {cost:.4g}"))
+        except FitError as exc:
+            raise CommissionError(f"the fit cannot be trusted: {exc}") from None
+        intervals = {}
+        for key, value in result.values.items():
+            se = result.std_errors[key]
+            if isinstance(value, list):
+                intervals[key] = [[v - Z_95 * s, v + Z_95 * s] for v, s in zip(value, se, strict=True)]
+            else:
+                intervals[key] = [value - Z_95 * se, value + Z_95 * se]
+        write_text(self.out / "fit.json", json.dumps({**result.to_json(), "intervals_95": intervals},
+                                                     indent=1) + "\n")
+        write_text(self.out / "fitted.yaml", fitted_document(result, data))
+        worst = max(result.correlations.items(), key=lambda kv: abs(kv[1]), default=None)
+        warn = f"; {worst[0].replace('|', ' and ')} correlated {worst[1]:+.3f}" if worst else ""
+        return f"{len(result.keys)} parameters, cost {result.start_cost:.4g} -> {result.cost:.4g}{warn}"
+
+    def _box(self) -> str:
+        fitted = json.loads((self.out / "fit.json").read_text())
+        box = {"box": calibrated_box(fitted["parameters"], fitted["std_errors"])}
+        params, _ = load_fitted(str(self.out / "fitted.yaml"))
+        box_from_dict(box["box"], params, "calibrated box")          # the rules of every box file
+        header = ("# The uncertainty box the design must hold, calibrated from the fit (fit.json):\n"
+                  f"# each fitted parameter within {INFLATION:g} x its 95 % interval, at least its floor;\n"
+                  "# the rest as box B has it (stacks' drift +-10 %, delay 0..1 sample, gauges +-1 mm,\n"
+                  "# rate +-1 %).\n")
+        write_text(self.out / "box.yaml", header + yaml.safe_dump(box, sort_keys=False))
+        return f"{len(box['box']['parameters'])} parameters"
+
+    def _gains(self) -> str:
+        params, _ = load_fitted(str(self.out / "fitted.yaml"))
+        model = build_model(params)
+        grid = None
+        if self.settings.grid_n:
+            start, stop, step = self.settings.grid_n
+            grid = [start + i * step for i in range(int(round((stop - start) / step)) + 1)]
+        table = build_lqg_table(model, grid, progress=self.progress)
+        if not table.all_stable:
+            raise CommissionError("the table designed on the fitted model is unstable at "
+                                  f"{sum(not c.stable for c in table.checks)} check points: not written")
+        note = f"{len(table.loads_n)} loads, fitted model's Fx,cr {critical_load(model):.0f} N"
+        if self.settings.robust:
+            params_box = box_from_dict(read_yaml(self.out / "box.yaml")["box"], params, "box.yaml")
+            result = robust_check(table, params_box, progress=self.progress)
+            write_text(self.out / "robust.json", json.dumps(result.to_dict(table), indent=1) + "\n")
+            note += f"; robust check: worst onset / own Fx,cr {result.worst_ratio:.4f}"
+            if result.worst_ratio < 1.0:
+                with replacing(self.out / "gains-not-held.yaml") as temp:
+                    write_table(table, temp)
+                raise CommissionError(f"NOT HELD: a rig of the calibrated box goes unstable below its own "
+                                      f"critical load ({result.worst_ratio:.4f}); the table is in "
+                                      "gains-not-held.yaml, robust.json names the rig")
+        with replacing(self.out / "gains.yaml") as temp:
+            write_table(table, temp)
+        return note
+
+    def _experiment(self) -> str:
+        if self.cfg.hal.backend != "sim":
+            return ("a real rig: stopped here, before the beam is loaded past its critical load. Next: "
+                    f"set gains.table: {self.out / 'gains.yaml'} and the fitted force constant "
+                    f"({self.out / 'fitted.yaml'}) in the rig's configuration, `beamctl config check`, then "
+                    "`beamctl run --hold` and raise the load")
+        raw = read_yaml(self.config_path)
+        _, k = load_fitted(str(self.out / "fitted.yaml"))
+        scenario = {**raw, "gains": {"table": str(self.out / "gains.yaml")},
+                    "model": str(self.out / "fitted.yaml")}
+        if k is not None:
+            controller = dict(raw.get("controller") or {})
+            controller["actuators"] = {**(controller.get("actuators") or {}), "force_constant_n_per_v": k}
+            scenario["controller"] = controller
+        experiment = dict(scenario.get("experiment") or {})
+        experiment["paper_mode"] = False
+        scenario["experiment"] = experiment
+        cfg, settings = experiment_config(scenario, f"{self.config_path} with the commissioned table")
+        tables = experiment_tables(cfg, settings)
+        summary, traces = run_experiment(cfg, settings, tables, progress=self.progress, stop=self.stop)
+        loads = traces["interpolate"].arrays()["load_n"]
+        own = summary["plant_critical_load_N"]
+        let_go = summary["controlled"]["load_at_1.0mm_N"]
+        summary["commission"] = {"own_critical_load_N": own, "let_go_at_N": let_go,
+                                 "max_load_N": float(loads.max()) if loads.size else None,
+                                 "held_past_own_critical_load": bool(
+                                     loads.size and loads.max() > own and (let_go is None or let_go > own))}
+        folder = self.out / "experiment"
+        partial = self.out / "experiment.partial"
+        if partial.exists():
+            for p in partial.iterdir():
+                p.unlink()
+        else:
+            partial.mkdir()
+        plots.experiment_figures(summary, traces, partial)
+        write_text(partial / "summary.json", json.dumps(summary, indent=1) + "\n")
+        if folder.exists():
+            for p in folder.iterdir():
+                p.unlink()
+            folder.rmdir()
+        partial.rename(folder)
+        return held_text(summary["commission"])
+
+    def _report(self) -> str:
+        data = [read_frf(p) for p in self._frf_paths()]
+        params, k = load_fitted(str(self.out / "fitted.yaml"))
+        plots.figure_5a(data, self.cfg.model, (params, k), self.out / "fig5a_frequency_response.png")
+        write_text(self.out / "report.html", report_html(self.out))
+        return "report.html"
+
+    def summary(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"folder": str(self.out), "done": list(self.done)}
+        for name in ("fit.json", "robust.json", "experiment/summary.json"):
+            path = self.out / name
+            if path.exists():
+                out[name.split("/")[0].removesuffix(".json")] = json.loads(path.read_text())
+        return out
+
+
+def held_text(c: dict[str, Any]) -> str:
+    """What the commissioned table held in the simulated experiment, in words."""
+    own = f"the rig's own Fx,cr {c['own_critical_load_N']:.0f} N"
+    if c["let_go_at_N"] is not None:
+        return f"{own}; the beam passed 1 mm at {c['let_go_at_N']:.0f} N"
+    top = c["max_load_N"]
+    return f"{own}; held below 1 mm to the ramp's end, {top:.0f} N" if top is not None else own
+
+
+def report_html(out: Path) -> str:
+    """The commissioning report: every step's numbers and figures, in one page."""
+    def table(rows: list[tuple[str, str]]) -> str:
+        return "<table>" + "".join(f"<tr><th>{html.escape(a)}</th><td>{html.escape(b)}</td></tr>"
+                                   for a, b in rows) + "</table>"
+
+    fit_data = json.loads((out / "fit.json").read_text())
+    parts = ["<!doctype html><meta charset='utf-8'><title>beamctl commissioning</title>",
+             "<style>body{font-family:sans-serif;max-width:60em;margin:auto}th{text-align:left;"
+             "padding-right:1em}img{max-width:100%}</style>",
+             f"<h1>Commissioning: {html.escape(str(out))}</h1>", "<h2>Fit (95 % intervals)</h2>"]
+    rows = []
+    for key, value in fit_data["parameters"].items():
+        interval = fit_data["intervals_95"][key]
+        rows.append((key, f"{value} ({interval})"))
+    parts.append(table(rows))
+    if fit_data.get("correlations"):
+        parts.append(table([(k.replace("|", " and "), f"correlated {v:+.3f}")
+                            for k, v in fit_data["correlations"].items()]))
+    parts.append("<img src='fig5a_frequency_response.png' alt='measured and fitted frequency responses'>")
+    parts.append("<h2>Calibrated box</h2><pre>" + html.escape((out / "box.yaml").read_text()) + "</pre>")
+    robust = out / "robust.json"
+    if robust.exists():
+        r = json.loads(robust.read_text()).get("robust", {})
+        parts.append("<h2>Robust check</h2>" + table([
+            ("worst onset / own Fx,cr", f"{r.get('worst_ratio')}"),
+            ("worst rig", json.dumps(r.get("worst_rig_si", r.get("worst_rig")))),
+            ("rigs evaluated", f"{r.get('evaluated')}")]))
+    else:
+        parts.append("<h2>Robust check</h2><p>left out (--no-robust): how far the table holds a rig of the "
+                     "box is not known.</p>")
+    experiment = out / "experiment" / "summary.json"
+    if experiment.exists():
+        s = json.loads(experiment.read_text())
+        parts.append("<h2>Simulated experiment on the rig</h2>" + table([
+            ("the rig's own Fx,cr", f"{s['plant_critical_load_N']:.0f} N"),
+            ("controlled run", held_text(s["commission"]))]))
+        parts += [f"<img src='experiment/{p.name}' alt='{html.escape(p.stem)}'>"
+                  for p in sorted((out / "experiment").glob("*.png"))]
+    return "\n".join(parts) + "\n"
+
+
+def grid_of(text: str) -> tuple[float, float, float]:
+    """``START:STOP:STEP`` in N."""
+    try:
+        start, stop, step = (float(x) for x in text.split(":"))
+    except ValueError:
+        raise ConfigError("--grid", text, "START:STOP:STEP in N, e.g. 0:4000:100") from None
+    if not (0 <= start < stop and step > 0 and math.isfinite(stop)):
+        raise ConfigError("--grid", text, "0 <= START < STOP and STEP > 0")
+    return start, stop, step
+

@@ -1,0 +1,108 @@
+"""``beamctl commission``: a simulated rig that differs from the model, from identification to a
+gain table that holds it; Ctrl-C in the middle ends it with 130 and nothing half-written, and it
+goes on where it stopped."""
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from beamctl.commission.workflow import FLOOR, STATE, calibrated_box
+from beamctl.gains.robust import box_from_dict
+from beamctl.gains.table import load_table
+from beamctl.models import build_model, critical_load, load_parameters, parameters_from_dict
+from beamctl.tools.cli import main
+from tests.processes import beamctl, interrupt_when
+
+# a rig that differs from Table 1 (E x1.02, kr x0.8, damping x1.5, stacks 3.3 N/V where the
+# controller believes 3.0), bowed, with strain and load-cell noise; its load ramps past its own
+# critical load (3225 N) to 3700 N at 50 N/s in the experiment
+MODEL = {"beam": {"youngs_modulus": 77.316e9}, "supports": {"rotational_stiffness": 153.92},
+         "damping": {"ratios": [0.0225, 0.00675]}}
+RIG = {"hal": {"backend": "sim", "sim": {"pace": "simulated", "own_actuators": True,
+                                         "actuators": {"force_constant_n_per_v": 3.3}}},
+       "plant": {"noise": {"strain": 2e-7, "load": 2.0, "seed": 1},
+                 "bow": {"amplitude": 5e-5, "angle_deg": 234.0},
+                 "load": {"start": 2000.0, "end": 3700.0, "rate": 50.0}, "model": MODEL}}
+FAST = ["--averages", "3", "--no-robust", "--grid", "0:4000:200"]
+
+
+@pytest.fixture
+def rig(tmp_path):
+    path = tmp_path / "rig.yaml"
+    path.write_text(yaml.safe_dump(RIG))
+    return path
+
+
+def test_an_interrupted_commissioning_goes_on_where_it_stopped_and_its_table_holds_the_rig(rig, tmp_path):
+    out = tmp_path / "out"
+    process = beamctl("commission", "--config", str(rig), "--out", str(out), *FAST, cwd=tmp_path)
+    code, err = interrupt_when(process, b"step 4/6 gains ...")
+    assert code == 130 and "interrupted (SIGINT" in err and "Traceback" not in err, err
+    state = json.loads((out / STATE).read_text())
+    assert state["done"] == ["identify", "fit", "box"], state
+    assert not (out / "gains.yaml").exists() and not list(out.glob("*.tmp*")) and not list(out.glob(".*")), (
+        sorted(p.name for p in out.iterdir()))
+    measured = (out / "frf_2000N.npz").stat().st_mtime_ns
+
+    assert main(["commission", "--config", str(rig), "--out", str(out), *FAST, "--json"]) == 0
+    assert (out / "frf_2000N.npz").stat().st_mtime_ns == measured, "a step done before was run again"
+    state = json.loads((out / STATE).read_text())
+    assert state["done"] == ["identify", "fit", "box", "gains", "experiment", "report"], state
+
+    # the fit: the rig's own E and kr within 1 %, its damping within 10 %, each inside its interval
+    fit = json.loads((out / "fit.json").read_text())
+    truth = {"beam.youngs_modulus": 77.316e9, "supports.rotational_stiffness": 153.92,
+             "damping.ratios": [0.0225, 0.00675]}
+    for key, tolerance in (("beam.youngs_modulus", 0.01), ("supports.rotational_stiffness", 0.01),
+                           ("damping.ratios", 0.10)):
+        values = np.atleast_1d(fit["parameters"][key])
+        error = np.abs(values / np.atleast_1d(truth[key]) - 1)
+        assert error.max() < tolerance, (key, values, truth[key])
+    # the table was designed on the fitted model and holds the rig past its own critical load
+    table = load_table(out / "gains.yaml")
+    fitted = yaml.safe_load((out / "fitted.yaml").read_text())["model"]
+    assert table.model_parameters.to_dict() == parameters_from_dict(fitted).to_dict()
+    own = critical_load(build_model(parameters_from_dict({**load_parameters().to_dict(), **MODEL})))
+    summary = json.loads((out / "experiment" / "summary.json").read_text())["commission"]
+    assert summary["own_critical_load_N"] == pytest.approx(own, rel=1e-9)
+    assert summary["held_past_own_critical_load"], summary
+    report = (out / "report.html").read_text()
+    for figure in ("fig5a_frequency_response.png", *(f"experiment/{p.name}"
+                                                     for p in (out / "experiment").glob("*.png"))):
+        assert f"src='{figure}'" in report and (out / figure).exists(), figure
+
+
+def test_a_folder_of_another_commissioning_or_bad_settings_are_refused_in_one_line(rig, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / STATE).write_text(json.dumps({"config": "/elsewhere.yaml", "config_sha256": "0",
+                                         "settings": {}, "done": ["identify"]}))
+    for argv, key in ((["--out", str(out)], "--out"),
+                      (["--out", str(tmp_path / "o2"), "--loads", "x"], "--loads"),
+                      (["--out", str(tmp_path / "o3"), "--grid", "5:1:1"], "--grid"),
+                      (["--out", str(tmp_path / "o4"), "--params", "E,bogus"], "--params")):
+        assert main(["commission", "--config", str(rig), *FAST, *argv]) == 2, argv
+        err = capsys.readouterr().err
+        assert key in err and len(err.strip().splitlines()) == 1, err
+    missing = tmp_path / "missing.yaml"
+    assert main(["commission", "--config", str(missing), "--out", str(tmp_path / "o5")]) == 2
+    assert "missing.yaml" in capsys.readouterr().err
+
+
+def test_the_calibrated_box_widens_the_fit_s_intervals_and_keeps_what_identification_cannot_see():
+    fitted = {"beam.youngs_modulus": 7.7e10, "supports.rotational_stiffness": 150.0,
+              "damping.ratios": [0.02, 0.006], "actuators.force_constant_n_per_v": 3.3}
+    errors = {"beam.youngs_modulus": 7.7e10 * 0.004, "supports.rotational_stiffness": 0.1,
+              "damping.ratios": [0.0001, 0.00003], "actuators.force_constant_n_per_v": 0.001}
+    box = calibrated_box(fitted, errors)
+    e = box["parameters"]["beam.youngs_modulus"]["factor"]
+    assert e[1] - 1 == pytest.approx(3.0 * 1.959964 * 0.004, abs=1e-6), (
+        "3 x the 95 % interval, above the floor")
+    kr = box["parameters"]["supports.rotational_stiffness"]["factor"]
+    assert kr == [1 - FLOOR["supports.rotational_stiffness"], 1 + FLOOR["supports.rotational_stiffness"]]
+    for unseen in ("io.delay_samples", "actuators.force_constant_n_per_v",
+                   "sensors.strain_gauge_positions[0]"):
+        assert unseen in box["parameters"], unseen
+    box_from_dict(box, load_parameters())          # a valid box file
