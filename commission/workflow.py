@@ -15,7 +15,8 @@ one folder, step by step:
 Each step writes its files whole (under a temporary name, moved into place when complete) and
 is then recorded in ``commission.json``; run again on the same folder with the same
 configuration and settings, the workflow goes on where it stopped (an interrupted step is run
-again, the ones recorded are kept). A folder of another rig or other settings is refused.
+again, the ones recorded are kept; a recorded step whose files are gone is run again, with every
+step after it). A folder of another rig or other settings is refused.
 """
 
 from __future__ import annotations
@@ -136,7 +137,13 @@ class Commission:
             if not same:
                 raise ConfigError("--out", str(self.out), "a new folder, or the folder of this "
                                   "configuration and these settings (it holds another commissioning)")
-            self.done = [s for s in done if s in STEPS]
+            # a step whose files are gone (moved, deleted) is run again, and every step after it
+            kept: list[str] = []
+            for step in STEPS:
+                if step not in done or not all((self.out / name).exists() for name in self._files(step)):
+                    break
+                kept.append(step)
+            self.done = kept
         elif any(self.out.iterdir()):
             raise ConfigError("--out", str(self.out), "an empty folder or one this workflow began")
 
@@ -168,6 +175,14 @@ class Commission:
             if step == "experiment" and self.cfg.hal.backend != "sim":
                 break
         return self.summary()
+
+    def _files(self, step: str) -> list[str]:
+        """The files a step leaves in the folder (what a resumed run needs of it)."""
+        if step == "identify":
+            return [p.name for p in self._frf_paths()]
+        sim = self.cfg.hal.backend == "sim"
+        return {"fit": ["fit.json", "fitted.yaml"], "box": ["box.yaml"], "gains": ["gains.yaml"],
+                "experiment": ["experiment/summary.json"] if sim else [], "report": ["report.html"]}[step]
 
     def _frf_paths(self) -> list[Path]:
         return [self.out / f"frf_{load:g}N.npz" for load in self.settings.loads_n]

@@ -106,3 +106,16 @@ def test_the_calibrated_box_widens_the_fit_s_intervals_and_keeps_what_identifica
                    "sensors.strain_gauge_positions[0]"):
         assert unseen in box["parameters"], unseen
     box_from_dict(box, load_parameters())          # a valid box file
+
+
+def test_a_step_whose_files_are_gone_is_run_again_with_every_step_after_it(rig, tmp_path):
+    from beamctl.commission.workflow import STEPS, Commission, CommissionSettings
+
+    out = tmp_path / "out"
+    settings = CommissionSettings(averages=3, robust=False)
+    first = Commission(rig, out, settings, log=lambda line: None)
+    (out / STATE).write_text(json.dumps({**first.identity, "done": list(STEPS)}))
+    for name in ("frf_2000N.npz", "fit.json", "fitted.yaml", "gains.yaml", "report.html"):
+        (out / name).write_text("")         # box.yaml and the experiment are gone
+    again = Commission(rig, out, settings, log=lambda line: None)
+    assert again.done == ["identify", "fit"], again.done
