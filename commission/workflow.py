@@ -169,11 +169,12 @@ class Commission:
                 continue
             self.log(f"step {number}/{len(STEPS)} {step} ...")
             note = getattr(self, f"_{step}")()
+            if step == "experiment" and self.cfg.hal.backend != "sim":
+                self.log(f"step {number}/{len(STEPS)} {step}: {note}")    # not done: asked again next time
+                break
             self.done.append(step)
             write_text(self.out / STATE, json.dumps({**self.identity, "done": self.done}, indent=1) + "\n")
             self.log(f"step {number}/{len(STEPS)} {step}: {note}")
-            if step == "experiment" and self.cfg.hal.backend != "sim":
-                break
         return self.summary()
 
     def _files(self, step: str) -> list[str]:
@@ -181,7 +182,8 @@ class Commission:
         if step == "identify":
             return [p.name for p in self._frf_paths()]
         sim = self.cfg.hal.backend == "sim"
-        return {"fit": ["fit.json", "fitted.yaml"], "box": ["box.yaml"], "gains": ["gains.yaml"],
+        gains = ["gains.yaml", "robust.json"] if self.settings.robust else ["gains.yaml"]
+        return {"fit": ["fit.json", "fitted.yaml"], "box": ["box.yaml"], "gains": gains,
                 "experiment": ["experiment/summary.json"] if sim else [], "report": ["report.html"]}[step]
 
     def _frf_paths(self) -> list[Path]:
@@ -191,7 +193,7 @@ class Commission:
         table = load_gain_table(self.cfg)
         for path, load in zip(self._frf_paths(), self.settings.loads_n, strict=True):
             settings = IdentifySettings(load_n=load, averages=self.settings.averages)
-            data, _ = identify(self.cfg, table, settings, self.progress, self.stop)
+            data, _ = identify(self.cfg, table, settings, self._report_progress, self.stop)
             write_frf(data, path)
         return f"{len(self.settings.loads_n)} measurement(s): {', '.join(p.name for p in self._frf_paths())}"
 
@@ -276,7 +278,8 @@ class Commission:
         scenario["experiment"] = experiment
         cfg, settings = experiment_config(scenario, f"{self.config_path} with the commissioned table")
         tables = experiment_tables(cfg, settings)
-        summary, traces = run_experiment(cfg, settings, tables, progress=self.progress, stop=self.stop)
+        summary, traces = run_experiment(cfg, settings, tables, progress=self._report_progress,
+                                         stop=self.stop)
         loads = traces["interpolate"].arrays()["load_n"]
         own = summary["plant_critical_load_N"]
         let_go = summary["controlled"]["load_at_1.0mm_N"]

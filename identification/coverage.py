@@ -14,7 +14,6 @@ errors) covers the truth where |z| <= 1.96; ``summarise`` counts how often, per 
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
@@ -120,7 +119,7 @@ def run_rig(settings: CoverageSettings, index: int) -> dict[str, Any]:
         for i, (v, t, s) in enumerate(zip(values, true, std, strict=True)):
             name = f"{key}[{i}]" if isinstance(value, list) else key
             row[name] = {"value": v, "true": t, "std_error": s, "relative_error": v / t - 1.0,
-                         "z": (v - t) / s if s > 0 else math.inf}
+                         "z": (v - t) / s if s > 0 else None}
     row["correlations"] = result.correlations
     return row
 
@@ -132,12 +131,15 @@ def _run_one(args: tuple[CoverageSettings, int]) -> dict[str, Any]:
     from threadpoolctl import threadpool_limits
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    settings, index = args
     with threadpool_limits(1):
-        try:
-            return run_rig(settings, index)
-        except Exception as exc:    # this rig's, in its row: the others still run
-            return {"rig": index, "seed": settings.seed + index, "error": f"{type(exc).__name__}: {exc}"}
+        return _row(*args)
+
+
+def _row(settings: CoverageSettings, index: int) -> dict[str, Any]:
+    try:
+        return run_rig(settings, index)
+    except Exception as exc:        # this rig's, in its row: the others still run
+        return {"rig": index, "seed": settings.seed + index, "error": f"{type(exc).__name__}: {exc}"}
 
 
 def run(settings: CoverageSettings, workers: int = 1,
@@ -148,7 +150,7 @@ def run(settings: CoverageSettings, workers: int = 1,
     jobs = [(settings, i) for i in range(settings.rigs)]
     if workers <= 1:
         for done, job in enumerate(jobs, 1):
-            row = run_rig(*job)
+            row = _row(*job)
             if progress:
                 progress(done, len(jobs))
             yield row
@@ -175,10 +177,10 @@ def summarise(rows: Sequence[dict[str, Any]], settings: CoverageSettings) -> dic
                  if isinstance(c, dict) and (name == key or name.startswith(key + "["))]
         if not cells:
             continue
-        covered = sum(abs(c["z"]) <= Z_95 for c in cells)
+        covered = sum(c["z"] is not None and abs(c["z"]) <= Z_95 for c in cells)
         per[key] = {"values": len(cells), "max_relative_error": max(abs(c["relative_error"]) for c in cells),
                     "covered_95": covered, "coverage_95": covered / len(cells),
-                    "max_abs_z": max(abs(c["z"]) for c in cells)}
+                    "max_abs_z": max((abs(c["z"]) for c in cells if c["z"] is not None), default=None)}
     aliases = {v: k for k, v in ALIASES.items()}
     return {"settings": {**asdict(settings), "loads_n": list(settings.loads_n),
                          "parameters": list(settings.parameters)},

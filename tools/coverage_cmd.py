@@ -74,8 +74,9 @@ def run(args: argparse.Namespace) -> int:
           f"{settings.averages} averages; fitted {', '.join(settings.parameters)}")
     print(f"  {'parameter':<16}{'values':>7}{'largest error':>15}{'95 % covers':>14}{'largest |z|':>13}")
     for name, p in summary["parameters"].items():
+        z = "-" if p["max_abs_z"] is None else f"{p['max_abs_z']:.2f}"
         print(f"  {name:<16}{p['values']:>7}{p['max_relative_error'] * 100:>14.2f}%"
-              f"{p['covered_95']:>8} of {p['values']:<3}{p['max_abs_z']:>11.2f}")
+              f"{p['covered_95']:>8} of {p['values']:<3}{z:>11}")
     for refused in summary["refused"]:
         print(f"  rig {refused['rig']}: fit refused: {refused['error']}")
     if out is not None:
