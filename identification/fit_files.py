@@ -55,14 +55,16 @@ def fitted_document(result: FitResult, files: list[FrfData]) -> str:
     section (every model parameter), and the stack force per volt when it was fitted."""
     lines = ["# Model fitted by `beamctl model fit` to:"]
     lines += [f"#   {d.source} ({d.load_n:.0f} N, {len(d.frequencies_hz)} frequencies)" for d in files]
+    misfit = "" if result.misfit is None else f"; misfit {result.misfit:.3g} (1: down to the data's noise)"
     lines.append(f"# cost {result.cost:.6g} (start {result.start_cost:.6g}), "
-                 f"{result.evaluations} evaluations")
+                 f"{result.evaluations} evaluations{misfit}")
     lines.append("# parameter: start -> fitted +- standard error")
     for k in result.keys:
         lines.append(f"#   {k}: {_fmt(result.start[k])} -> {_fmt(result.values[k])} +- "
                      f"{_fmt(result.std_errors[k])}")
     for pair, r in result.correlations.items():
         lines.append(f"# correlated (poorly separable): {pair.replace('|', ' and ')}: {r:+.3f}")
+    lines += [f"# warning: {w}" for w in result.warnings]
     lines += ["# `beamctl model --config F` and `beamctl gains build --config F` read the model section;",
               "# a rig's configuration takes it with `model: F`."]
     doc: dict = {"model": result.parameters.to_dict()}

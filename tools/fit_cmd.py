@@ -95,7 +95,8 @@ def run(args: argparse.Namespace) -> int:
         return 0
     print(f"fitted {len(result.keys)} parameters to {len(data)} measurement(s){' and ' if eigen else ''}"
           f"{f'{len(eigen)} eigenfrequencies' if eigen else ''}: cost {result.cost:.6g} "
-          f"(start {result.start_cost:.6g}), {result.evaluations} evaluations")
+          f"(start {result.start_cost:.6g}), {result.evaluations} evaluations"
+          + ("" if result.misfit is None else f"; misfit {result.misfit:.3g} (1: down to the data's noise)"))
     width = max(len(k) for k in result.keys)
     for k in result.keys:
         v, sd = result.values[k], result.std_errors[k]
@@ -104,6 +105,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"  {k:<{width}}  {_fmt(result.start[k])} -> {_fmt(v)} +- {_fmt(sd)} ({rel_text} %)")
     for pair, r in result.correlations.items():
         print(f"  correlated (poorly separable): {pair.replace('|', ' and ')}: {r:+.3f}")
+    for warning in result.warnings:
+        print(f"  warning: {warning}")
     if FORCE_CONSTANT_KEY in result.values:
         print(f"set controller.actuators.force_constant_n_per_v: {result.values[FORCE_CONSTANT_KEY]:.6g} "
               f"in the rig's configuration")

@@ -119,3 +119,29 @@ def test_a_step_whose_files_are_gone_is_run_again_with_every_step_after_it(rig, 
         (out / name).write_text("")         # box.yaml and the experiment are gone
     again = Commission(rig, out, settings, log=lambda line: None)
     assert again.done == ["identify", "fit"], again.done
+
+
+def test_a_changed_model_file_the_configuration_names_makes_it_another_commissioning(tmp_path):
+    """The configuration's own bytes are the same; the model file it names is not."""
+    from beamctl.commission.workflow import Commission, CommissionSettings
+
+    model = tmp_path / "model.yaml"
+    model.write_text(yaml.safe_dump(MODEL))
+    config = tmp_path / "rig.yaml"
+    config.write_text(yaml.safe_dump({**RIG, "model": str(model)}))
+    out = tmp_path / "out"
+    settings = CommissionSettings(averages=3, robust=False)
+    first = Commission(config, out, settings, log=lambda line: None)
+    (out / STATE).write_text(json.dumps({**first.identity, "done": ["identify"]}))
+    (out / "frf_2000N.npz").write_text("")
+    assert Commission(config, out, settings, log=lambda line: None).done == ["identify"], "the same rig"
+    model.write_text(yaml.safe_dump({**MODEL, "supports": {"rotational_stiffness": 160.0}}))
+    with pytest.raises(Exception, match="another commissioning"):
+        Commission(config, out, settings, log=lambda line: None)
+
+
+def test_a_parameter_not_fitted_keeps_box_b_s_range_in_the_calibrated_box():
+    box = calibrated_box({"supports.rotational_stiffness": 150.0}, {"supports.rotational_stiffness": 0.1})
+    assert box["parameters"]["beam.youngs_modulus"] == {"factor": [0.97, 1.03]}, "E not fitted: +-3 %"
+    assert calibrated_box({"damping.ratios": [0.0, 0.0]}, {"damping.ratios": [0.0, 0.0]})[
+        "parameters"]["damping.ratios"] == {"factor": [0.7, 1.3]}, "no relative error to take: the floor"
