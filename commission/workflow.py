@@ -57,6 +57,9 @@ Z_95 = 1.959964
 # FE mesh, not what a real rig has that no simulated one does); a parameter not fitted and what
 # identification cannot see, as box B has it.
 INFLATION = 3.0
+GRID_STEP_N = 100.0
+GRID_TOP_N = 4000.0
+GRID_TOP_FRACTION = 1.2
 FLOOR = {"beam.youngs_modulus": 0.01, "supports.rotational_stiffness": 0.10,
          "supports.lateral_stiffness": 0.10, "supports.actuator_stiffness": 0.10, "damping.ratios": 0.30}
 UNSEEN = {"beam.youngs_modulus": {"factor": [0.97, 1.03]},
@@ -69,6 +72,15 @@ UNSEEN = {"beam.youngs_modulus": {"factor": [0.97, 1.03]},
           "sensors.strain_gauge_positions[0]": {"offset": [-1e-3, 1e-3]},
           "sensors.strain_gauge_positions[1]": {"offset": [-1e-3, 1e-3]},
           "sample_rate_hz": {"factor": [0.99, 1.01]}}
+
+
+def default_grid(critical_n: float) -> list[float]:
+    """The table's loads when --grid is not given: every GRID_STEP_N from 0 to GRID_TOP_FRACTION
+    of the fitted model's critical load (at most 4000 N, the shipped design's top). An LQG design
+    holds a model to about 1.25 x its critical load (Table 1's: 4000 N of 3194 N, a knife-edge),
+    so a softer rig's table ends lower instead of ending unstable."""
+    top = min(GRID_TOP_N, GRID_STEP_N * math.floor(GRID_TOP_FRACTION * critical_n / GRID_STEP_N))
+    return [GRID_STEP_N * i for i in range(int(round(top / GRID_STEP_N)) + 1)]
 
 
 class CommissionError(Exception):
@@ -249,14 +261,18 @@ class Commission:
     def _gains(self) -> str:
         params, _ = load_fitted(str(self.out / "fitted.yaml"))
         model = build_model(params)
-        grid = None
         if self.settings.grid_n:
             start, stop, step = self.settings.grid_n
             grid = [start + i * step for i in range(int(round((stop - start) / step)) + 1)]
+        else:
+            grid = default_grid(critical_load(model))
         table = build_lqg_table(model, grid, progress=self.progress)
         if not table.all_stable:
-            raise CommissionError("the table designed on the fitted model is unstable at "
-                                  f"{sum(not c.stable for c in table.checks)} check points: not written")
+            unstable = [c.load_n for c in table.checks if not c.stable]
+            raise CommissionError(f"the table designed on the fitted model is unstable at {len(unstable)} "
+                                  f"check point(s) ({', '.join(f'{x:g}' for x in unstable[:5])} N): not "
+                                  f"written; a grid that ends lower "
+                                  f"(--grid 0:{max(grid[-1] - 300, 100):g}:100) may hold")
         note = f"{len(table.loads_n)} loads, fitted model's Fx,cr {critical_load(model):.0f} N"
         if self.settings.robust:
             params_box = box_from_dict(read_yaml(self.out / "box.yaml")["box"], params, "box.yaml")

@@ -145,3 +145,14 @@ def test_a_parameter_not_fitted_keeps_box_b_s_range_in_the_calibrated_box():
     assert box["parameters"]["beam.youngs_modulus"] == {"factor": [0.97, 1.03]}, "E not fitted: +-3 %"
     assert calibrated_box({"damping.ratios": [0.0, 0.0]}, {"damping.ratios": [0.0, 0.0]})[
         "parameters"]["damping.ratios"] == {"factor": [0.7, 1.3]}, "no relative error to take: the floor"
+
+
+def test_the_default_grid_ends_where_a_design_can_hold_the_fitted_model():
+    """A rig 1.5 % softer than Table 1 (Fx,cr 3146 N): its LQG table was unstable at 4000 N
+    (spectral radius 1.0017), so the grid ends at 1.2 x its critical load; a stiffer one keeps
+    the shipped design's 4000 N."""
+    from beamctl.commission.workflow import default_grid
+
+    soft = default_grid(3146.4)
+    assert soft[0] == 0.0 and soft[-1] == 3700.0 and np.allclose(np.diff(soft), 100.0), soft
+    assert default_grid(3500.0)[-1] == 4000.0
