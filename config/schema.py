@@ -110,6 +110,25 @@ def positive(unit: str = "") -> Validator:
     return number(unit, low=0.0, low_open=True)
 
 
+def plausible(low: float, high: float, unit: str, zero: bool = False) -> Validator:
+    """A finite number from ``low`` to ``high`` in ``unit`` (or 0 with ``zero``): the range a
+    physical quantity of this rig can have, so that a value in the wrong unit (mm for m, GPa for
+    Pa) is refused naming its key and the unit it must be in."""
+    expected = f"a finite number {'0 or ' if zero else ''}from {low:g} to {high:g} {unit} (in {unit})"
+    inner = number(low=low, high=high)
+
+    def check(value: Any) -> float:
+        x = _as_float(value, expected)
+        if zero and x == 0.0:
+            return x
+        try:
+            return inner(x)
+        except _Invalid:
+            raise _Invalid(expected) from None
+
+    return check
+
+
 def nonnegative(unit: str = "") -> Validator:
     """A finite number >= 0."""
     return number(unit, low=0.0)

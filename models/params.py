@@ -18,10 +18,9 @@ from beamctl.config.schema import (
     ConfigError,
     integer,
     merge,
-    nonnegative,
     number,
     number_list,
-    positive,
+    plausible,
     read_yaml,
     validate,
 )
@@ -31,31 +30,31 @@ PAPER_YAML = "paper.yaml"
 # The strain-gauge rule depends on the beam length, so it is checked after the schema.
 _SCHEMA = {
     "beam": {
-        "length": positive("m"),
-        "radius": positive("m"),
-        "density": positive("kg/m^3"),
-        "youngs_modulus": positive("N/m^2"),
-        "proportional_limit": positive("N/m^2"),
+        "length": plausible(0.05, 5.0, "m"),
+        "radius": plausible(0.5e-3, 0.1, "m"),
+        "density": plausible(500.0, 25000.0, "kg/m^3"),
+        "youngs_modulus": plausible(1e9, 1e12, "N/m^2"),
+        "proportional_limit": plausible(1e6, 1e10, "N/m^2"),
     },
     "extension": {
-        "length": positive("m"),
-        "radius": positive("m"),
-        "density": positive("kg/m^3"),
-        "youngs_modulus": positive("N/m^2"),
+        "length": plausible(0.5e-3, 0.5, "m"),
+        "radius": plausible(0.5e-3, 0.1, "m"),
+        "density": plausible(500.0, 25000.0, "kg/m^3"),
+        "youngs_modulus": plausible(1e9, 1e12, "N/m^2"),
     },
     "supports": {
-        "rotational_stiffness": positive("N m/rad"),
-        "lateral_stiffness": positive("N/m"),
-        "actuator_stiffness": positive("N/m"),
+        "rotational_stiffness": plausible(1e-3, 1e7, "N m/rad"),
+        "lateral_stiffness": plausible(1e2, 1e11, "N/m"),
+        "actuator_stiffness": plausible(1e2, 1e11, "N/m"),
     },
-    "sensors": {
+"sensors": {
         "strain_gauge_positions": number_list(number("m"), 2, "gauge positions"),
         "max_condition_number": number(low=1.0, low_open=True),
     },
     "damping": {
         "ratios": number_list(number(low=0.0, high=1.0, low_open=True, high_open=True), 2,
                               "modal damping ratios"),
-        "identification_load": nonnegative("N"),
+        "identification_load": plausible(0.0, 1e6, "N"),
     },
     "fe": {"nodes": integer(low=5, high=401)},
     "modal": {"reference_load_fraction": number(low=0.0, high=1.0, high_open=True)},

@@ -58,6 +58,7 @@ from beamctl.config.schema import (
     merge,
     nonnegative,
     number,
+    plausible,
     positive,
     read_yaml,
     validate,
@@ -97,9 +98,11 @@ _SCHEMA = {
         "rate": positive("N/s"),
         "hold": nonnegative("s"),
     },
-    "bow": {"amplitude": nonnegative("m"), "angle_deg": number("deg")},
-    "eccentricity": {"amplitude": nonnegative("m"), "angle_deg": number("deg")},
-    "noise": {"strain": nonnegative("strain, RMS"), "load": nonnegative("N, RMS"),
+    # at most 5 mm (a 400 mm beam bowed by L/80): the shipped bow is 0.161 mm = 1.61e-4 m
+    "bow": {"amplitude": plausible(0.0, 5e-3, "m"), "angle_deg": number("deg")},
+    "eccentricity": {"amplitude": plausible(0.0, 5e-3, "m"), "angle_deg": number("deg")},
+    # strain as a fraction (0.2 ue RMS is 2e-7), not in microstrain
+    "noise": {"strain": plausible(0.0, 1e-3, "strain, RMS"), "load": plausible(0.0, 1e3, "N, RMS"),
               "seed": integer(low=0)},
 }
 
