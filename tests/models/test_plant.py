@@ -215,9 +215,11 @@ def test_plant_config_is_validated(tmp_path):
     assert load_plant_config(f).bow.amplitude == 1.5e-4
 
 
-@pytest.mark.parametrize("section, key, value", [("bow", "amplitude", 0.161), ("eccentricity", "amplitude", 0.2),
+@pytest.mark.parametrize("section, key, value", [("bow", "amplitude", 0.161),
+                                                 ("eccentricity", "amplitude", 0.2),
                                                  ("noise", "strain", 0.2)])
 def test_an_imperfection_or_noise_in_the_wrong_unit_is_refused_naming_it(section, key, value):
     """A bow of 0.161 (m for mm) was taken: every run then failed at 260 N."""
-    with pytest.raises(ConfigError, match=rf"{section}\.{key} = {value:g}: expected a finite number from 0 to"):
+    expected = rf"{section}\.{key} = {value:g}: expected a finite number from 0 to"
+    with pytest.raises(ConfigError, match=expected):
         plant_config({section: {key: value}}, "plant.yaml")
