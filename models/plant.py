@@ -106,6 +106,10 @@ _SCHEMA = {
               "seed": integer(low=0)},
 }
 
+# a simulated beam rests on end stops this far from straight (m): beyond the strain limit's reach
+# (about 13 mm at the shipped 0.5 x the proportional limit), well short of the beam's own
+END_STOP_M = 0.02
+
 # discretisations kept per process, over all plants: two rigs' whole 260..4000 N ramps at 1 N
 # cells (a 48-state plant's cell is 22 kB: 88 MB at most)
 SHARED_CELLS = 8000
@@ -332,6 +336,13 @@ class Plant:
         self._settle = -np.linalg.solve(a[aa, aa], a[aa, :aa.start]) if n_aa else None
         self._settle_load = -np.linalg.solve(a[aa, aa], b[aa, N_FORCES]) if n_aa else None
 
+        # the end stops: the lateral deflection at the beam's quarter points, checked each step
+        quarter = [nodes[round(f * (len(nodes) - 1))] for f in (0.25, 0.5, 0.75)]
+        self._stop_rows = np.vstack([basis[[dof(k, PLANE_DOFS[p][0]) for k in quarter]] for p in ("y", "z")])
+        self._stop_out = np.zeros(self._stop_rows.shape[0])
+        self._velocity = slice(self._q.stop, self._q.stop + n)
+        self.on_stops_since: float | None = None     # the time the beam first came to rest on its stops
+
         self._state = np.zeros(n_states)
         self._next = np.zeros(n_states)
         self._forced = np.zeros(n_states)
@@ -442,6 +453,7 @@ class Plant:
         """Place the beam at rest in static equilibrium under the programme's load at
         ``time_s`` with no actuator force (none in the delay either), the filters at rest."""
         self.time = time_s
+        self.on_stops_since = None
         self.axial_load = self.config.load.load_at(time_s)
         k = self._k_elastic - self.axial_load * self._k_geometric
         self._state[:] = 0.0
@@ -467,9 +479,24 @@ class Plant:
         np.dot(self._bd, inputs, out=self._forced)
         self._next += self._forced
         self._state, self._next = self._next, self._state
+        np.dot(self._stop_rows, self._state[self._q], out=self._stop_out)
+        if self._stop_out.max() > END_STOP_M or -self._stop_out.min() > END_STOP_M:
+            self._rest_on_stops()
         self.time += self.period_s
         self.axial_load = self.config.load.load_at(self.time)
         self._use_load(self.axial_load)
+
+    def _rest_on_stops(self) -> None:
+        """The beam has reached its end stops: it comes to rest against them (its shape scaled
+        back to the stops, its velocity gone), as a rig's catch holds a lost beam. Without them
+        a beam past its critical load with nobody holding it grows without bound."""
+        n = len(self._stop_out) // 2
+        reach = float(np.hypot(self._stop_out[:n], self._stop_out[n:]).max())
+        if reach > END_STOP_M:
+            self._state[self._q] *= END_STOP_M / reach
+        self._state[self._velocity] = 0.0
+        if self.on_stops_since is None:
+            self.on_stops_since = self.time
 
     def follow_load(self, programme: LoadRamp) -> None:
         """From now on follow another load programme (on the plant's own clock): an operator

@@ -233,6 +233,26 @@ def _longest(mask: np.ndarray) -> int:
     return int((ends - starts).max())
 
 
+def _max_mm(deflection_m: np.ndarray) -> float | None:
+    """The largest finite deflection in mm (a recording of a beam that ran away before the
+    simulated rig had end stops holds inf and nan)."""
+    finite = deflection_m[np.isfinite(deflection_m)]
+    return float(finite.max() * 1e3) if finite.size else None
+
+
+def _lost(run: RunRecord, passed: np.ndarray) -> dict[str, Any] | None:
+    """Where the beam was lost (its deflection first passed 1 mm): the load, the time, the
+    supervisor's state then and the run's first fault (None: not lost)."""
+    if not passed.size:
+        return None
+    i = int(passed[0])
+    latched = np.flatnonzero(run.fault != Fault.NONE)
+    return {"load_n": float(run.load_n[i]), "time_s": float(run.time_s[i]),
+            "state": state_name(run.state[i]),
+            "fault": fault_name(run.fault[latched[0]]) if latched.size else None,
+            "fault_time_s": float(run.time_s[latched[0]]) if latched.size else None}
+
+
 def figures_of_merit(run: RunRecord) -> dict[str, Any]:
     """What the run achieved and how the loop kept time, SI units except where named."""
 
@@ -251,8 +271,9 @@ def figures_of_merit(run: RunRecord) -> dict[str, Any]:
         "samples": len(run.time_s),
         "duration_s": float(run.time_s[-1]),
         "sample_rate_hz": rate,
-        "max_deflection_mm": float(run.deflection_m.max() * 1e3),
-        "max_deflection_running_mm": float(run.deflection_m[running].max() * 1e3) if running.any() else None,
+        "max_deflection_mm": _max_mm(run.deflection_m),
+        "max_deflection_running_mm": _max_mm(run.deflection_m[running]) if running.any() else None,
+        "lost": _lost(run, passed),
         "load_range_n": [float(np.nanmin(run.load_n)), float(np.nanmax(run.load_n))],
         "load_held_n": float(load[held].max()) if held.any() else None,
         "load_at_0.5mm_n": first_crossing(load, run.deflection_m, 0.5e-3),
@@ -344,6 +365,17 @@ def _table(rows: list[tuple[str, ...]], head: tuple[str, ...] | None = None,
     return "\n".join(out)
 
 
+def _lost_text(lost: dict[str, Any] | None) -> str:
+    if lost is None:
+        return "no"
+    text = f"at {lost['load_n']:.0f} N, {lost['time_s']:.2f} s, {lost['state']}"
+    if lost["fault"]:
+        dt = lost["time_s"] - lost["fault_time_s"]
+        text += (f", {dt:.2f} s after {lost['fault']} (the stacks ramping to bias)" if dt >= 0
+                 else f"; {lost['fault']} {-dt:.2f} s later")
+    return text
+
+
 def merit_rows(merit: dict[str, Any]) -> list[tuple[str, str]]:
     """The figures of merit as (name, value with unit) for a person."""
     def mm(v):
@@ -360,6 +392,7 @@ def merit_rows(merit: dict[str, Any]) -> list[tuple[str, str]]:
         ("max deflection while controlled", mm(merit["max_deflection_running_mm"])),
         ("load range (load cell)", f"{merit['load_range_n'][0]:.0f} to {merit['load_range_n'][1]:.0f} N"),
         ("load held (controlled, deflection below 1.0 mm)", n(merit["load_held_n"])),
+        ("beam lost (deflection past 1.0 mm)", _lost_text(merit.get("lost"))),
         ("load at 0.5 mm / 1.0 mm", f"{n(merit['load_at_0.5mm_n'])} / {n(merit['load_at_1.0mm_n'])}"
                                     if merit["load_at_0.5mm_n"] is not None else "not reached"),
         ("direction at 1.0 mm", "-" if merit["direction_at_1.0mm_deg"] is None

@@ -9,6 +9,7 @@ from beamctl.config.schema import ConfigError
 from beamctl.models import critical_load, eigenfrequencies
 from beamctl.models.plant import (
     ANCHOR_CELLS,
+    END_STOP_M,
     LoadRamp,
     Plant,
     clear_discretisations,
@@ -223,3 +224,24 @@ def test_an_imperfection_or_noise_in_the_wrong_unit_is_refused_naming_it(section
     expected = rf"{section}\.{key} = {value:g}: expected a finite number from 0 to"
     with pytest.raises(ConfigError, match=expected):
         plant_config({section: {key: value}}, "plant.yaml")
+
+
+def test_a_beam_nobody_holds_past_its_critical_load_comes_to_rest_on_its_end_stops(paper_model):
+    """Before, the lost beam grew without bound: numpy overflowed and every later figure said
+    nan. Now it rests on the stops, 20 mm from straight, and stays there with finite strains."""
+    fcr = critical_load(paper_model)
+    cfg = plant_config({"bow": {"amplitude": 1e-4, "angle_deg": 30.0},
+                        "load": {"start": 1.05 * fcr, "end": 1.05 * fcr, "rate": 100.0}})
+    plant = Plant(paper_model, cfg)
+    forces = np.zeros(4)
+    with np.errstate(all="raise"):          # an overflow fails the test
+        for _ in range(int(2.0 / plant.period_s)):
+            plant.step(forces)
+            strains, _ = plant.measure()
+    deflection, angle = plant.deflection()
+    assert plant.on_stops_since is not None and plant.on_stops_since < 1.0, "it reached the stops"
+    assert END_STOP_M * 0.9 < deflection <= END_STOP_M * 1.05, f"{deflection * 1e3:.2f} mm"
+    assert np.all(np.isfinite(strains)) and np.max(np.abs(strains)) < 0.01, strains
+    assert angle == pytest.approx(30.0, abs=5.0), "it rests where it was going"
+    plant.reset()
+    assert plant.on_stops_since is None, "a reset takes it off the stops"

@@ -247,3 +247,49 @@ def test_a_state_change_missed_by_the_thinning_is_still_drawn():
         assert step.get_xdata()[first_fault] == pytest.approx(50_001 / 2500.0)
     finally:
         plots._pyplot().close(fig)
+
+
+@pytest.fixture(scope="module")
+def lost(tmp_path_factory):
+    """The paper's design while the load ramps from 2000 N at 500 N/s to 3600 N, past the beam's
+    3194 N: the stacks run out, the supervisor faults, the stacks ramp to bias and the beam is
+    lost; the recording goes on to 4 s."""
+    path = tmp_path_factory.mktemp("report") / "lost.btl"
+    scenario = {**SCENARIO, "controller": {"pacing": "sample"},
+                "plant": {"load": {"start": 2000.0, "end": 3600.0, "rate": 500.0},
+                          "bow": {"amplitude": 1.61e-4, "angle_deg": 234.0},
+                          "noise": {"strain": 2e-7, "load": 2.0, "seed": 3}}}
+    cfg = service_config(scenario, "lost beam")
+    table = load_gain_table(cfg)
+    plant = build_plant(cfg, table)
+    hal = SimBackend(plant, plant_geometry(cfg), pace="simulated")
+    controller = Controller(table, cfg.controller)
+    writer = TelemetryWriter.for_controller(path, controller, meta={"config": "lost beam"}).start()
+    hal.open()
+    try:
+        with np.errstate(all="raise"):          # the plant must not overflow
+            ControlLoop(controller, hal, telemetry=writer, stop_on_fault=False,
+                        max_cycles=int(4.0 * table.design.sample_rate_hz)).run(acquire_rt=False)
+    finally:
+        hal.close()
+        writer.close()
+    return path, plant
+
+
+def test_a_lost_beam_is_reported_with_what_was_held_and_where_it_was_lost(lost):
+    """Before, the simulated beam ran away after the fault: numpy overflowed, the report said
+    'max deflection nan mm' and 'load held -'."""
+    path, plant = lost
+    assert plant.on_stops_since is not None, "the beam was lost and came to rest on its stops"
+    run = report.load_run(path)
+    merit = report.figures_of_merit(run)
+    assert merit["max_deflection_mm"] is not None and 1.0 < merit["max_deflection_mm"] < 30.0, merit
+    assert merit["load_held_n"] is not None and merit["load_held_n"] > 3100.0, merit
+    lost_at = merit["lost"]
+    assert lost_at is not None and lost_at["fault"] == merit["faults"][0], merit
+    # lost after it was held: the load cell's 2 N of noise aside
+    assert lost_at["load_n"] >= merit["load_held_n"] - 10.0, (lost_at, merit["load_held_n"])
+    rows = dict(report.merit_rows(merit))
+    assert "nan" not in " ".join(rows.values()), rows
+    text = rows["beam lost (deflection past 1.0 mm)"]
+    assert text.startswith(f"at {lost_at['load_n']:.0f} N") and lost_at["fault"] in text, text
