@@ -27,7 +27,7 @@ import json
 import math
 import shutil
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +37,7 @@ from beamctl.common.outputs import check_dir, replacing, write_text
 from beamctl.common.signals import Interrupted
 from beamctl.config.schema import ConfigError, read_yaml
 from beamctl.gains.build import build_lqg_table
-from beamctl.gains.robust import box_from_dict, robust_check
+from beamctl.gains.robust import box_from_dict, robust_check, table_record
 from beamctl.gains.table import write_table
 from beamctl.identification.fit_files import fitted_document, load_fitted
 from beamctl.identification.frf_files import read_frf, write_frf
@@ -277,6 +277,7 @@ class Commission:
         if self.settings.robust:
             params_box = box_from_dict(read_yaml(self.out / "box.yaml")["box"], params, "box.yaml")
             result = robust_check(table, params_box, progress=self.progress)
+            table = replace(table, robust=table_record(result, "the calibrated box (box.yaml)"))
             write_text(self.out / "robust.json", json.dumps(result.to_dict(table), indent=1) + "\n")
             note += f"; robust check: worst onset / own Fx,cr {result.worst_ratio:.4f}"
             if result.worst_ratio < 1.0:

@@ -35,6 +35,7 @@ fine walk), and ~2000 rigs sample a 10-parameter box.
 
 from __future__ import annotations
 
+import datetime as _dt
 import math
 import os
 import signal
@@ -562,6 +563,26 @@ class RobustResult:
         if table is not None:
             out["worst_rig_si"] = rig_si(table, self.box, w.values)
         return {"robust": out}
+
+
+def table_record(result: RobustResult, box_name: str) -> dict[str, Any]:
+    """What a gain table keeps of its robust check (its ``robust`` section): the worst ratio,
+    where that rig went unstable, how many rigs were searched, the box and when."""
+    w = result.worst
+    return {"worst_ratio": float(w.ratio), "onset_N": w.onset_n, "critical_load_N": float(w.critical_load_n),
+            "censored": bool(w.censored), "worst_rig": {k: float(v) for k, v in w.values.items()},
+            "evaluated": int(result.count), "box_name": box_name, "box": result.box.to_dict(),
+            "checked": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}
+
+
+def robust_text(record: Mapping[str, Any] | None) -> str:
+    """A table's recorded robust check in one line (``table_record``)."""
+    if not record:
+        return "not recorded in the table (`beamctl gains check --robust --record FILE` records it)"
+    held = "held" if record["worst_ratio"] >= 1.0 else "NOT HELD"
+    return (f"{held}: the worst rig of {record.get('box_name', 'its box')} goes unstable at "
+            f"{record['worst_ratio']:.4f} x its own critical load ({record.get('evaluated', '?')} rigs "
+            f"searched, {record.get('checked', 'time not recorded')})")
 
 
 def rig_si(table: GainTable, box: Box, values: Mapping[str, float]) -> dict[str, float]:

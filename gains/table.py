@@ -159,6 +159,8 @@ class GainTable:
     # the ride-through limits found when it was built (gains.ridethrough); None: not analysed
     # (built without the check, unstable, or written before the analysis existed)
     ride_through: RideThrough | None = None
+    # the robust check's result on this table (gains.robust ``table_record``); None: not recorded
+    robust: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
         comp = self.compensator
@@ -237,6 +239,8 @@ class GainTable:
         }
         if self.ride_through is not None:
             content["ride_through"] = self.ride_through.to_dict()
+        if self.robust is not None:
+            content["robust"] = _plain(self.robust)
         return content
 
 
@@ -467,7 +471,8 @@ def load_table(path: str | Path, model: ModelParameters | None = None, *,
         schedule=ScheduleSettings(mode=mode, load_filter_hz=load_filter, hysteresis_n=hysteresis),
         model_parameters=params, checks=tuple(checks), forced=forced,
         tool_version=str(data.get("tool_version", "")), created=str(data.get("created", "")),
-        intact=stored == content, ride_through=ride_through)
+        intact=stored == content, ride_through=ride_through,
+        robust=_robust(data, source) if "robust" in data else None)
     if verify:
         require_checked(table, source, rebuild_advice(path))
     return table
@@ -536,6 +541,22 @@ def _compensator(data: dict, n_points: int, period_s: float, source: str) -> Com
         raise GainTableError("compensator.plane_states", _short(raw), expected, source)
     return Compensator(**matrices, h=h, start=start, period_s=period_s,
                        plane_states={"y": list(raw["y"]), "z": list(raw["z"])}, predict=predict)
+
+
+def _robust(data: dict, source: str) -> dict[str, Any]:
+    """The ``robust`` section: the robust check's result, its worst ratio a positive number, the
+    rigs it evaluated a count, its box a mapping of parameters."""
+    section = data["robust"]
+    if not isinstance(section, dict):
+        raise GainTableError("robust", _short(section), "a mapping: the robust check's result", source)
+    ratio = _number(data, "robust.worst_ratio", source)
+    evaluated = section.get("evaluated")
+    if isinstance(evaluated, bool) or not isinstance(evaluated, int) or evaluated < 1:
+        raise GainTableError("robust.evaluated", evaluated, "the number of rigs the check evaluated", source)
+    box = section.get("box")
+    if not isinstance(box, dict) or not isinstance(box.get("parameters"), dict):
+        raise GainTableError("robust.box", _short(box), "the box the check covered (its parameters)", source)
+    return {**section, "worst_ratio": ratio}
 
 
 def _ride_through(data: dict, source: str, n_loads: int, design_delay: float,

@@ -58,6 +58,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     from beamctl.tools import (
         bench_cmd,
         commission_cmd,
+        config_cmd,
         experiment_cmd,
         gains_cmd,
         identify_cmd,
@@ -88,12 +89,14 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     bench_cmd.add_parser(sub)
     study_cmd.add_parser(sub)
     commission_cmd.add_parser(sub)
+    config_cmd.add_parser(sub)
     return parser
 
 
 def _command_name(args: argparse.Namespace) -> str:
     """``beamctl gains build``: the command and its action, as the user typed them."""
-    words = [getattr(args, key, None) for key in ("command", "gains_command", "log_command", "ctl_command")]
+    words = [getattr(args, key, None)
+             for key in ("command", "gains_command", "log_command", "ctl_command", "config_command")]
     return " ".join(["beamctl", *(w for w in words if w)])
 
 

@@ -14,7 +14,16 @@ from beamctl.common.outputs import check_dir, check_file, replacing, write_text
 from beamctl.config.schema import ConfigError
 from beamctl.gains.build import build_lqg_table, build_table, closed_loop_checks
 from beamctl.gains.defaults import DESIGNS, default_table_path, paper_table_path
-from beamctl.gains.robust import DEFAULT_BOX, box_from_dict, describe, load_box, rig_of, robust_check
+from beamctl.gains.robust import (
+    DEFAULT_BOX,
+    box_from_dict,
+    describe,
+    load_box,
+    rig_of,
+    robust_check,
+    robust_text,
+    table_record,
+)
 from beamctl.gains.table import GainTable, changed_file_message, load_table, write_table
 from beamctl.models import build_model
 from beamctl.reports import plots
@@ -73,8 +82,11 @@ def add_parser(sub) -> None:
     c.add_argument("--robust", action="store_true",
                    help="search the uncertainty box for the rig whose loop goes unstable at the lowest "
                         "fraction of its own critical load (minutes, both cores)")
+    c.add_argument("--record", action="store_true",
+                   help="with --robust: write the result into the table file (`gains show` and `beamctl "
+                        "config check` report it; the file's content hash is renewed)")
     c.add_argument("--box", metavar="FILE", help="the uncertainty box (YAML, a box: section; default: "
-                   "the README's box B)")
+                   "box B, docs/pages/robustness.md)")
     c.add_argument("--seed", type=argtypes.integer(low=0, high=2**32 - 1), metavar="N",
                    help="the search's seed (default: the box's, 1): the same seed finds the same rigs")
     c.add_argument("--workers", type=argtypes.number(low=1, integer=True), metavar="N",
@@ -149,6 +161,10 @@ def run_build(args: argparse.Namespace) -> int:
               flush=True)
         result = _robust(table, box, None)
         print(_robust_line(result))
+        table = replace(table, robust=table_record(result, args.box or "box B"))
+        with replacing(out) as temp:      # the table keeps its robust check (`gains show`, `config check`)
+            write_table(table, temp)
+        print(f"recorded the robust check in {out}")
         if result.worst_ratio < 1.0:
             print("NOT HELD: a rig of the box goes unstable below its own critical load (exit status 1)")
             return 1
@@ -194,12 +210,20 @@ def run_check(args: argparse.Namespace) -> int:
                         ("--worst-rig", args.worst_rig), ("--workers", args.workers)):
         if value is not None and not args.robust:
             raise ConfigError(flag, value, "--robust as well (it sets how the robust check runs)")
+    if args.record and not args.robust:
+        raise ConfigError("--record", True, "--robust as well (it records the robust check's result)")
+    if args.record and not args.file:
+        raise ConfigError("--record", True, "a table file of your own (the shipped tables are not changed)")
     if args.worst_rig and len(files) > 1:
         raise ConfigError("--worst-rig", args.worst_rig, "one gain table (the scenario runs that table)")
     if args.scheduler and args.workers:
         raise ConfigError("--workers", args.workers, "no --scheduler (the cluster has its own workers)")
     worst_rig = check_file(args.worst_rig, "--worst-rig") if args.worst_rig is not None else None
     tables = [(path, _load(path, "check")) for path in files]
+    changed = [path for path, table in tables if not table.intact]
+    if args.record and changed:
+        raise ConfigError("--record", changed[0], "a table whose content matches its SHA-256 (this one was "
+                          "changed after it was built: rebuild it)")
     box = None
     if args.robust:
 
@@ -256,6 +280,11 @@ def _check_one(path: str, table: GainTable, box, args: argparse.Namespace, clien
     result = _robust(table, box, args.workers, client) if box is not None else None
     if result is not None:
         report.update(result.to_dict(table))
+        if args.record:
+            with replacing(Path(path)) as temp:
+                write_table(replace(table, robust=table_record(result, args.box or "box B")), temp)
+            report["recorded"] = path
+            print(f"recorded the robust check in {path}", file=sys.stderr)
     if args.json:
         return report
     print(f"gain table {path}: {report['design']}")
@@ -337,6 +366,7 @@ def run_show(args: argparse.Namespace) -> int:
     recorded = " (as recorded before the change)" if not table.intact else ""
     print(f"check{recorded}: {check}{' (forced)' if table.forced else ''}")
     print(f"content sha256: {'matches' if table.intact else 'DOES NOT MATCH (changed after it was built)'}")
+    print(f"robust check: {robust_text(table.robust)}")
     print()
     step = max(1, len(table.loads_n) // 16)
     if table.gains is not None:

@@ -1,0 +1,84 @@
+"""``beamctl config check``: what a configuration would run, and every reason ``beamctl run``
+would refuse it, found without starting the service (service/check.py)."""
+
+import hashlib
+import json
+from dataclasses import replace
+
+import yaml
+
+from beamctl.gains.defaults import default_table_path
+from beamctl.gains.table import load_table, write_table
+from beamctl.service.check import check_config
+from beamctl.service.run import Service
+from beamctl.service.setup import service_config
+from beamctl.tools.cli import main
+
+RECORD = {"worst_ratio": 1.1007, "onset_N": 3521.0, "critical_load_N": 3199.0, "censored": False,
+          "worst_rig": {"beam.youngs_modulus": 0.97}, "evaluated": 1496, "box_name": "box B",
+          "box": {"parameters": {"beam.youngs_modulus": {"factor": [0.95, 1.05]}}, "seed": 1},
+          "checked": "2026-11-27T03:00:00+00:00"}
+
+
+def _write(path, data) -> str:
+    path.write_text(yaml.safe_dump(data))
+    return str(path)
+
+
+def test_a_runnable_configuration_names_its_table_hash_and_design_and_exits_0(tmp_path, capsys):
+    config = _write(tmp_path / "sim.yaml", {"hal": {"backend": "sim"},
+                                             "control": {"socket": str(tmp_path / "ctl.sock")}})
+    assert main(["config", "check", config]) == 0
+    out = capsys.readouterr().out
+    sha = hashlib.sha256(default_table_path().read_bytes()).hexdigest()     # the file's own bytes
+    assert str(default_table_path().resolve()) in out and sha in out, out
+    assert "lqg at 6000 Hz" in out and "would start" in out
+    assert "robust check" in out and "not recorded" in out, "the shipped table records no robust check"
+
+
+def test_every_reason_the_service_would_refuse_is_given_and_exits_1(tmp_path, capsys):
+    """A classic CAN bus too slow for 6000 Hz, and a telemetry file that is already there."""
+    (tmp_path / "old.btl").write_bytes(b"")
+    config = _write(tmp_path / "can.yaml", {
+        "hal": {"backend": "can", "can": {"interface": "virtual", "channel": "check", "fd": False,
+                                          "bitrate_bit_s": 500000}},
+        "run": {"telemetry": str(tmp_path / "old.btl")}, "control": {"socket": str(tmp_path / "c.sock")}})
+    assert main(["config", "check", config, "--json"]) == 1
+    report = json.loads(capsys.readouterr().out)
+    assert not report["would_start"]
+    reasons = " | ".join(report["refusals"])
+    assert "bus load" in reasons and "6000 Hz" in reasons, reasons
+    assert "old.btl" in reasons and "never overwritten" in reasons, reasons
+
+
+def test_a_service_answering_on_the_socket_makes_it_refuse(tmp_path):
+    sock = tmp_path / "ctl.sock"
+    data = {"hal": {"backend": "sim", "sim": {"pace": "simulated"}}, "controller": {"pacing": "sample"},
+            "plant": {"load": {"start": 1000.0, "end": 1000.0}}, "control": {"socket": str(sock)}}
+    service = Service(service_config(data), tmp_path / "run.btl", control_socket=sock, hold=True,
+                      acquire_rt=False)
+    try:
+        service.start()
+        result = check_config(_write(tmp_path / "again.yaml", data))
+    finally:
+        service.request_stop()
+        service.join(30.0)
+        service.close()
+    assert not result.would_start
+    assert any("a service answers there" in r for r in result.refusals), result.refusals
+
+
+def test_a_recorded_robust_check_is_kept_in_the_table_and_reported(tmp_path, capsys):
+    table = replace(load_table(default_table_path()), robust=RECORD)
+    path = tmp_path / "gains.yaml"
+    write_table(table, path)
+    again = load_table(path)
+    assert again.intact and again.robust["worst_ratio"] == 1.1007, "kept under the table's content hash"
+    assert main(["gains", "show", str(path)]) == 0
+    assert "robust check: held" in capsys.readouterr().out
+    config = _write(tmp_path / "sim.yaml", {"hal": {"backend": "sim"}, "gains": {"table": str(path)},
+                                             "control": {"socket": str(tmp_path / "ctl.sock")}})
+    assert main(["config", "check", config]) == 0
+    out = capsys.readouterr().out
+    assert "held: the worst rig of box B goes unstable at 1.1007 x its own critical load" in out, out
+    assert "1496 rigs" in out
