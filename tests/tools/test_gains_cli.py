@@ -180,11 +180,23 @@ def test_build_runs_the_robust_check_over_its_box_with_progress(tmp_path, capsys
     assert "robust check: searching" in captured.err and "robust check: 100 %" in captured.err, captured.err
     assert "worst onset / own Fx,cr" in captured.out and "NOT HELD" in captured.out, captured.out
     assert status == 1 and out.exists()
+    from beamctl.gains.table import load_table
+    recorded = load_table(out, verify=False).robust
+    assert recorded is not None and recorded["worst_ratio"] < 1.0 and recorded["evaluated"] >= 12, recorded
+    assert main(["gains", "show", str(out)]) == 0
+    assert "robust check: NOT HELD" in capsys.readouterr().out, "the table says what its check found"
 
 
 @pytest.mark.parametrize("flags", [["--seed", "3"], ["--box", "b.yaml"], ["--scheduler", "tcp://x:1"],
-                                   ["--worst-rig", "w.yaml"], ["--workers", "2"]])
+                                   ["--worst-rig", "w.yaml"], ["--workers", "2"], ["--record"]])
 def test_a_robust_flag_without_robust_is_refused(flags, capsys):
     assert main(["gains", "check", *flags]) == 2
     err = capsys.readouterr().err
     assert flags[0] in err and "--robust" in err and "Traceback" not in err
+
+
+def test_recording_into_the_shipped_table_is_refused(capsys):
+    assert main(["gains", "check", "--robust", "--record"]) == 2
+    err = capsys.readouterr().err
+    assert "--record" in err and "shipped tables are not changed" in err
+    assert len(err.strip().splitlines()) == 1, err
