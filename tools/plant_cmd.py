@@ -4,14 +4,17 @@
 from __future__ import annotations
 
 import argparse
+import json
 import signal
 import sys
 import threading
 
 from beamctl.config.schema import ConfigError
+from beamctl.gains.defaults import default_table_path
+from beamctl.gains.table import load_table
 from beamctl.hal.base import HalConfigurationError
 from beamctl.hal.budget import LIMIT, bus_budget
-from beamctl.hal.config import check_bitrates
+from beamctl.hal.config import HAL_DEFAULTS, check_bitrates
 from beamctl.hal.dbc import Contract
 from beamctl.hal.emulator import CanPlantEmulator
 from beamctl.rt import realtime
@@ -28,7 +31,14 @@ def parse_can(text: str) -> tuple[str, str]:
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("plant", help="run the simulated beam as the DAQ on a CAN bus")
+    p = sub.add_parser(
+        "plant", help="run the simulated beam as the DAQ on a CAN bus",
+        description="The simulated rig playing the lab's DAQ: it sends the strain and load frames of "
+                    "hal/beamctl.dbc on a CAN bus at the gain table's rate and applies the voltage "
+                    "frames `beamctl run` answers with, falling back to bias when they stop. On this "
+                    "machine use python-can's virtual or the local bus (--can beamctl_local:CH); on the "
+                    "lab PC a SocketCAN interface (--can socketcan:vcan0 after `modprobe vcan`). Runs "
+                    "until Ctrl-C or --duration; exit 0 then.")
     p.add_argument("--can", required=True, metavar="INTERFACE:CHANNEL",
                    help="python-can interface and channel, e.g. socketcan:vcan0")
     p.add_argument("--config", metavar="F", help="service config (model, plant and controller sections)")
@@ -42,12 +52,21 @@ def add_parser(sub) -> None:
                    help="ramp to bias within S seconds when falling back (default: the DBC's FallbackRampMs)")
     p.set_defaults(run=run_plant)
 
-    b = sub.add_parser("bus-budget", help="bus load of the DBC's frames at a sample rate")
-    b.add_argument("--rate", type=positive, default=2500.0, help="sample rate in Hz (default 2500)")
-    b.add_argument("--bitrate", type=positive, default=1e6, help="(nominal) bit rate (default 1e6)")
-    b.add_argument("--fd", action="store_true", help="CAN FD with bit-rate switch")
-    b.add_argument("--data-bitrate", type=positive, default=4e6, help="CAN FD data bit rate (default 4e6)")
+    b = sub.add_parser(
+        "bus-budget", help="bus load of the DBC's frames at a sample rate",
+        description="What the frames of the DBC cost on the bus at a sample rate, per message, and the "
+                    "highest rate within the 80 %% the service allows. Without flags: the shipped gain "
+                    "table's rate on the HAL's default bus (CAN FD 1 Mbit/s with a 4 Mbit/s data phase); "
+                    "--config takes the rate from a service configuration's gain table and the bus from "
+                    "its hal.can section; the flags override either.")
+    b.add_argument("--config", metavar="F", help="service configuration: its table's rate, its hal.can bus")
+    b.add_argument("--rate", type=positive, help="sample rate in Hz (default: the gain table's)")
+    b.add_argument("--bitrate", type=positive, help="(nominal) bit rate in bit/s (default 1e6)")
+    b.add_argument("--fd", action=argparse.BooleanOptionalAction, default=None,
+                   help="CAN FD with bit-rate switch, or (--no-fd) classic CAN (default: CAN FD)")
+    b.add_argument("--data-bitrate", type=positive, help="CAN FD data bit rate in bit/s (default 4e6)")
     b.add_argument("--dbc", help="DBC file (default: the shipped hal/beamctl.dbc)")
+    b.add_argument("--json", action="store_true", help="print the budget as one JSON object")
     b.set_defaults(run=run_budget)
 
 
@@ -102,15 +121,40 @@ def run_plant(args: argparse.Namespace) -> int:
 EMULATOR_PRIORITY = 70     # SCHED_FIFO of the emulator: below the controller's 80
 
 
+def _budget_settings(args: argparse.Namespace) -> tuple[float, float, bool, float, str | None, str]:
+    """(rate, bit rate, CAN FD, data bit rate, DBC, where the rate came from): the flags over the
+    configuration's (or the shipped table's and the HAL's defaults)."""
+    if args.config:
+        cfg = load_service_config(args.config)
+        can, table_path = cfg.hal.can, cfg.table_path
+    else:
+        can, table_path = HAL_DEFAULTS["can"], default_table_path()
+    rate, source = args.rate, "--rate"
+    if rate is None:
+        rate, source = load_table(table_path, verify=False).design.sample_rate_hz, f"the rate of {table_path}"
+    return (rate, args.bitrate or can["bitrate_bit_s"], can["fd"] if args.fd is None else args.fd,
+            args.data_bitrate or can["data_bitrate_bit_s"], args.dbc or can["dbc"] or None, source)
+
+
 def run_budget(args: argparse.Namespace) -> int:
+    rate, bitrate, fd, data_bitrate, dbc, source = _budget_settings(args)
     # the data phase's rate is checked even without --fd: the CAN FD comparison uses it
-    check_bitrates(args.bitrate, args.data_bitrate, True, ("--bitrate", "--data-bitrate"))
+    check_bitrates(bitrate, data_bitrate, True, ("--bitrate", "--data-bitrate"))
     try:
-        contract = Contract(args.dbc)
+        contract = Contract(dbc)
     except HalConfigurationError as exc:
         print(f"beamctl bus-budget: error: {exc}", file=sys.stderr)
         return 2
-    b = bus_budget(contract, args.rate, args.bitrate, args.fd, args.data_bitrate)
+    b = bus_budget(contract, rate, bitrate, fd, data_bitrate)
+    fd_alternative = None if fd else bus_budget(contract, rate, bitrate, True, data_bitrate)
+    if args.json:
+        print(json.dumps({"bus": b.description, "sample_rate_hz": rate, "rate_from": source, "load": b.load,
+                          "limit": LIMIT, "fits": b.load <= LIMIT, "per_message": b.per_message,
+                          "max_sample_rate_hz": b.max_sample_rate_hz,
+                          "can_fd_load": None if fd_alternative is None else fd_alternative.load}, indent=1))
+        return 0 if b.load <= LIMIT else 1
+    args = argparse.Namespace(rate=rate, fd=fd, data_bitrate=data_bitrate)
+    print(f"at {rate:g} Hz ({source})")
     # near the limit one decimal would show "80.0 % (exceeds the 80 % limit)": show enough
     digits = 1 if abs(b.load - LIMIT) >= 5e-4 else 3
     print(f"{b.description}, {args.rate:g} Hz: bus load {100 * b.load:.{digits}f} % "
@@ -119,8 +163,7 @@ def run_budget(args: argparse.Namespace) -> int:
         codec = next(c for c in contract.codecs.values() if c.name == name)
         print(f"  {name:<14} {codec.length} bytes every {codec.divisor:>2} samples: {100 * share:5.1f} %")
     print(f"highest sample rate within {100 * LIMIT:.0f} %: {b.max_sample_rate_hz:.0f} Hz")
-    if not args.fd:
-        fd = bus_budget(contract, args.rate, args.bitrate, True, args.data_bitrate)
-        print(f"with CAN FD ({args.data_bitrate / 1e6:g} Mbit/s data phase): {100 * fd.load:.1f} %, "
-              f"up to {fd.max_sample_rate_hz:.0f} Hz")
+    if fd_alternative is not None:
+        print(f"with CAN FD ({args.data_bitrate / 1e6:g} Mbit/s data phase): "
+              f"{100 * fd_alternative.load:.1f} %, up to {fd_alternative.max_sample_rate_hz:.0f} Hz")
     return 0 if b.load <= LIMIT else 1

@@ -30,7 +30,15 @@ from beamctl.tools.argtypes import seconds
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("run", help="the controller service (lab: against the CAN DAQ)")
+    p = sub.add_parser(
+        "run", help="the controller service (lab: against the CAN DAQ)",
+        description="The controller service: loads and checks the configuration and its gain table "
+                    "(`beamctl config check F` shows what it would run without starting it), binds the "
+                    "control socket for `beamctl ctl`, records telemetry, arms and runs the control loop "
+                    "until stopped. A fault ramps the stacks to bias and holds them there until `beamctl "
+                    "ctl rearm` (or SIGUSR1). Ctrl-C or SIGTERM is how a service is stopped: the stacks "
+                    "ramp to bias, telemetry is flushed, the summary printed, and the exit status is 0, "
+                    "as for any run that ended (the summary says how); 2 when it could not start.")
     p.add_argument("--config", metavar="F", required=True, help="service config, e.g. deploy/lab.yaml")
     p.add_argument("--telemetry", metavar="FILE", help="telemetry file (default: run.telemetry or "
                                                         "beamctl-<time>.btl)")

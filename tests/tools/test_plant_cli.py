@@ -52,14 +52,28 @@ def test_can_spec_must_name_interface_and_channel(spec, capsys):
 
 
 def test_bus_budget_says_what_fits(capsys):
-    """The highest rate it names fits (exit 0) and one hertz more does not (exit 1)."""
+    """Without flags: the shipped table's 6000 Hz on the HAL's default CAN FD bus. The highest
+    rate it names fits (exit 0) and one hertz more does not (exit 1)."""
     assert main(["bus-budget"]) == 0
     out = capsys.readouterr().out
+    assert "at 6000 Hz (the rate of" in out and "CAN FD 1000/4000 kbit/s" in out, out
     highest = int(re.search(r"highest sample rate within 80 %: (\d+) Hz", out).group(1))
-    assert 2500 < highest, "the shipped 2500 Hz fits on classic CAN"
+    assert 6000 < highest, "the shipped 6000 Hz fits on CAN FD"
     assert main(["bus-budget", "--rate", str(highest)]) == 0
     assert main(["bus-budget", "--rate", str(highest + 1)]) == 1
     assert "exceeds the 80 % limit" in capsys.readouterr().out
+
+
+def test_bus_budget_reads_a_configuration_s_bus_and_table_and_answers_in_json(tmp_path, capsys):
+    import json
+
+    config = tmp_path / "classic.yaml"
+    config.write_text("hal:\n  backend: can\n  can: {fd: false, bitrate_bit_s: 1000000}\n")
+    assert main(["bus-budget", "--config", str(config), "--json"]) == 1, "6000 Hz does not fit classic CAN"
+    report = json.loads(capsys.readouterr().out)
+    assert report["bus"] == "classic CAN 1000 kbit/s" and report["sample_rate_hz"] == 6000.0, report
+    assert not report["fits"] and report["can_fd_load"] < 0.8, report
+    assert main(["bus-budget", "--config", str(config), "--rate", "2500", "--json"]) == 0
 
 
 @pytest.mark.parametrize(("argv", "flag", "value", "expected"), [
