@@ -53,3 +53,13 @@ def band(text: str) -> tuple[float, float]:
     if not (math.isfinite(low) and math.isfinite(high) and 0 <= low < high):
         raise argparse.ArgumentTypeError(f"{text!r}: expected LO:HI in Hz, 0 <= LO < HI, e.g. 10:1200")
     return low, high
+
+
+def renamed(parser: argparse.ArgumentParser, old: str, new: str) -> None:
+    """``old`` was this flag's name: refused in one line naming ``new`` (hidden from --help)."""
+
+    class _Renamed(argparse.Action):
+        def __call__(self, p, namespace, values, option_string=None):
+            p.error(f"{old} is now {new} (one name for the control socket on every command)")
+
+    parser.add_argument(old, action=_Renamed, nargs="?", help=argparse.SUPPRESS)

@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 from beamctl.service.control import ControlError, default_socket_path, request
+from beamctl.tools.argtypes import renamed
 
 GAINS_TIMEOUT_S = 120.0
 ACTIONS = {
@@ -30,11 +31,12 @@ def add_parser(sub) -> None:
                                    "Exit status: 0 done, 1 refused by the service (it says why), 2 no "
                                    "service, no permission or no answer.")
     common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("--socket", metavar="PATH",
+    common.add_argument("--control-socket", metavar="PATH",
                         help="the service's control socket (default: $BEAMCTL_CONTROL_SOCKET, else the "
                              "first of /run/beamctl, $XDG_RUNTIME_DIR/beamctl and /tmp/beamctl-UID "
                              "holding a control.sock)")
     common.add_argument("--json", action="store_true", help="print the service's reply as JSON")
+    renamed(common, "--socket", "--control-socket")
     csub = p.add_subparsers(dest="ctl_command", metavar="ACTION", required=True)
     for name, text in ACTIONS.items():
         a = csub.add_parser(name, parents=[common], help=text, description=text)
@@ -59,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     payload = {"command": name}
     if name == "gains":
         payload["table"] = str(Path(args.table).absolute())   # the service runs in a directory of its own
-    path = Path(args.socket) if args.socket else default_socket_path()
+    path = Path(args.control_socket) if args.control_socket else default_socket_path()
     try:
         # a gain table is read and checked before the answer: seconds, the first time
         reply = request(path, payload, timeout_s=GAINS_TIMEOUT_S if name == "gains" else 10.0)

@@ -10,7 +10,7 @@ import time
 from beamctl.common.signals import stop_on_signals
 from beamctl.service.live import default_live_path
 from beamctl.service.monitor import Monitor
-from beamctl.tools.argtypes import number, positive
+from beamctl.tools.argtypes import number, positive, renamed
 
 
 def _port(text: str) -> int:
@@ -30,16 +30,18 @@ def add_parser(sub) -> None:
     p.add_argument("--live", metavar="ADDRESS", default=default_live_path(),
                    help=f"the UNIX socket to listen at (default {default_live_path()}, where --live sends "
                         "without an address)")
-    p.add_argument("--control", metavar="PATH",
+    p.add_argument("--control-socket", metavar="PATH",
                    help="the service's control socket, for the page's buttons (default: where `beamctl "
                         "ctl` looks)")
+    renamed(p, "--control", "--control-socket")
     p.add_argument("--window", type=positive, default=20.0, metavar="S",
                    help="seconds of history the page shows (default 20)")
     p.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    with stop_on_signals() as stop, Monitor(args.live, args.port, args.control, args.window) as monitor:
+    with (stop_on_signals() as stop,
+          Monitor(args.live, args.port, args.control_socket, args.window) as monitor):
         print(f"beamctl monitor: listening for `--live` at {monitor.live_path}; operator commands go to "
               f"{monitor.control_path}", file=sys.stderr)
         print(monitor.url, flush=True)

@@ -211,28 +211,28 @@ def test_a_held_service_takes_another_gain_table_at_bias_then_starts(service, ot
     tampered = tmp_path / "tampered.yaml"
     tampered.write_text(paper_table_path().read_text().replace("velocity_cutoff_hz: 145.5",
                                                                "velocity_cutoff_hz: 150.0"))
-    sock = control_socket.parent / "held.sock"       # the config's control.socket, given to ctl as --socket
+    sock = control_socket.parent / "held.sock"       # the config's control.socket, given to ctl
     svc = service("--hold", control={"socket": str(sock)})
     held = svc.wait_for("ARMED at bias", lambda s: s["state"] == "ARMED" and s["at_bias"], sock)
     paper_sha = load_table(paper_table_path()).sha256
     assert held["table_sha256"] == paper_sha
 
     for table, why in ((tampered, "sha256"), (default_table_path(), "design.sample_rate_hz")):
-        code, out, err = _ctl(capsys, "gains", str(table), "--socket", str(sock))
+        code, out, err = _ctl(capsys, "gains", str(table), "--control-socket", str(sock))
         assert code == 1 and why in err and "refused" in err, (out, err)
-        code, out, _ = _ctl(capsys, "status", "--socket", str(sock), "--json")
+        code, out, _ = _ctl(capsys, "status", "--control-socket", str(sock), "--json")
         assert json.loads(out)["status"]["table_sha256"] == paper_sha, f"{table} replaced the table in use"
 
-    code, out, err = _ctl(capsys, "gains", str(other_table), "--socket", str(sock), "--json")
+    code, out, err = _ctl(capsys, "gains", str(other_table), "--control-socket", str(sock), "--json")
     reply = json.loads(out)
     assert code == 0 and reply["ok"], reply
     assert reply["status"]["table"] == str(other_table)
     assert reply["status"]["table_sha256"] == load_table(other_table).sha256
-    code, out, err = _ctl(capsys, "start", "--socket", str(sock))
+    code, out, err = _ctl(capsys, "start", "--control-socket", str(sock))
     assert code == 0 and "ARMED -> RUNNING" in out, (out, err)
     svc.wait_for("RUNNING", running, sock)
     time.sleep(0.5)     # let the law work a moment: what it did is read from the telemetry below
-    assert _ctl(capsys, "stop", "--socket", str(sock))[0] == 0
+    assert _ctl(capsys, "stop", "--control-socket", str(sock))[0] == 0
     assert svc.ended() == 0, svc.log
 
     assert svc.commands() == [("gains refused", "ARMED"), ("gains refused", "ARMED"), ("gains", "ARMED"),
@@ -258,11 +258,11 @@ def test_rearm_at_bias_after_a_fault_restarts_the_controller(service, control_so
         "FAULT at bias with the load back in range",
         lambda s: s["state"] == "FAULT" and s["at_bias"] and s["axial_load_n"] < 1090.0, sock)
     assert faulted["fault"] == "LOAD_OUT_OF_SENSOR_RANGE", faulted
-    code, out, err = _ctl(capsys, "rearm", "--socket", str(sock))
+    code, out, err = _ctl(capsys, "rearm", "--control-socket", str(sock))
     assert code == 0 and "FAULT -> RUNNING" in out, (out, err)
     status = svc.wait_for("RUNNING", running, sock)
     assert status["fault"] == "NONE"
-    assert _ctl(capsys, "stop", "--socket", str(sock))[0] == 0
+    assert _ctl(capsys, "stop", "--control-socket", str(sock))[0] == 0
     assert svc.ended() == 0, svc.log
     assert svc.commands() == [("rearm", "RUNNING"), ("stop", "STOPPING")]
     _, rows = read_telemetry(svc.telemetry)
@@ -277,7 +277,7 @@ def test_without_a_service_ctl_says_so_in_one_line_and_exits_2(control_socket, c
         dead.bind(str(control_socket))
     code, _, err = _ctl(capsys, "stop")
     assert code == 2 and "a service that has ended" in err and len(err.splitlines()) == 1, err
-    code, _, err = _ctl(capsys, "status", "--socket", "/tmp/" + "x" * 120)
+    code, _, err = _ctl(capsys, "status", "--control-socket", "/tmp/" + "x" * 120)
     assert code == 2 and "at most 107" in err and len(err.splitlines()) == 1, err
 
 
@@ -349,3 +349,12 @@ def test_a_table_swap_is_read_off_the_service_and_checked_as_at_a_start(tmp_path
     assert prepared.table.sha256 == table.sha256
     assert prepared.nb >= controller.record.size + 4, "a buffer for the record and the 4 compensator states"
     assert reader.returncode == 0, "the reader process did not end with the swaps"
+
+
+@pytest.mark.parametrize("argv, old", [(["ctl", "status", "--socket", "/tmp/x.sock"], "--socket"),
+                                       (["monitor", "--control", "/tmp/x.sock"], "--control")])
+def test_the_old_names_of_the_control_socket_flag_are_refused_naming_the_one_name(argv, old, capsys):
+    """run, ctl and monitor all say --control-socket."""
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"{old} is now --control-socket" in err and len(err.strip().splitlines()) == 1, err
