@@ -120,15 +120,17 @@ def check_format(fmt: str) -> None:
 
 def _write_csv(reader: TelemetryReader, d: Description, out: Path, chunk_rows: int) -> None:
     """``# name: value`` lines (the properties, then units, labels and bits as JSON), the row of
-    column names, the rows (10 significant digits)."""
+    column names, the rows (10 significant digits; times to the nanosecond, so that an hour's
+    recording keeps every sample's own time stamp)."""
     with open(out, "w", newline="") as fh:
         for key, value in d.properties().items():
             fh.write(f"# {key}: {value}\n")
         fh.write(f"# units: {json.dumps(d.units)}\n# labels: {json.dumps(d.labels)}\n"
                  f"# bits: {json.dumps(d.bits)}\n")
         fh.write(",".join(d.columns) + "\n")
+        fmt = ["%.9f" if name.startswith("time") else "%.10g" for name in d.columns]
         for chunk in reader.chunks(chunk_rows):
-            np.savetxt(fh, chunk, delimiter=",", fmt="%.10g")
+            np.savetxt(fh, chunk, delimiter=",", fmt=fmt)
 
 
 # -- MDF4 ----------------------------------------------------------------------------------------

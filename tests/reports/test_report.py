@@ -172,7 +172,7 @@ def test_a_recording_that_names_no_model_is_read_with_table_1_and_says_so(faulte
 
 
 def test_log_plot_draws_the_run_over_time_and_its_figure_7(faulted, tmp_path, capsys):
-    assert main(["log", "plot", str(faulted), str(tmp_path)]) == 0
+    assert main(["log", "plot", str(faulted), "--out", str(tmp_path)]) == 0
     for name in ("run_over_time.png", "fig7a_run.png", "fig7b_run.png"):
         assert (tmp_path / name).stat().st_size > 10_000, name   # drawn: a blank figure is under 5 kB
 

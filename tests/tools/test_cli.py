@@ -52,14 +52,14 @@ COMMANDS = {
                           (gains_cmd, "_load")),
     "log export --out": ("log export", lambda p, tmp: ["log", "export", str(tmp / "run.btl"), "--to", "csv",
                                                        "--out", p], "--out", (log_cmd, "read_telemetry")),
-    "log plot DIR": ("log plot", lambda p, tmp: ["log", "plot", str(tmp / "run.btl"), p], "DIR",
-                     (log_cmd, "read_telemetry")),
+    "log plot --out": ("log plot", lambda p, tmp: ["log", "plot", str(tmp / "run.btl"), "--out", p], "--out",
+                       (log_cmd, "read_telemetry")),
     "run --telemetry": ("run", lambda p, tmp: ["run", "--config", _config(tmp, {}), "--telemetry", p],
                         "--telemetry", (run_cmd, "Service")),
     "run.telemetry": ("run", lambda p, tmp: ["run", "--config", _config(tmp, {"run": {"telemetry": p}})],
                       "service.yaml: run.telemetry", (run_cmd, "Service")),
 }
-DIRECTORY_FLAGS = {"experiment --out", "model --plot", "gains show --plot", "log plot DIR"}
+DIRECTORY_FLAGS = {"experiment --out", "model --plot", "gains show --plot", "log plot --out"}
 
 
 def _bad_path(kind: str, command: str, tmp: Path) -> tuple[Path, str]:
@@ -154,7 +154,7 @@ def test_a_bad_flag_is_refused_in_one_line(argv, needle, capsys):
     ["experiment", "--config", "missing.yaml"],
     ["run", "--config", "missing.yaml"],
     ["log", "export", "missing.btl", "--to", "csv"],
-    ["log", "plot", "missing.btl", "figs"],
+    ["log", "plot", "missing.btl", "--out", "figs"],
     ["bus-budget", "--dbc", "missing.dbc"],
 ])
 def test_a_missing_input_file_is_refused_in_one_line(argv, tmp_path, monkeypatch, capsys):

@@ -1,5 +1,7 @@
 """``beamctl log export|plot`` on a recorded run."""
 
+import json
+
 import numpy as np
 import pytest
 import scipy.io
@@ -51,7 +53,7 @@ def test_export_csv_has_a_header_row(recording, tmp_path):
 def test_plot_draws_the_run_over_time_and_its_path(recording, tmp_path, capsys):
     """The recording's load stays at 1500 N: no deflection-versus-load figure. It was written
     without the header's model: the deflection in mm comes from Table 1, and the plot says so."""
-    assert main(["log", "plot", str(recording), str(tmp_path)]) == 0
+    assert main(["log", "plot", str(recording), "--out", str(tmp_path)]) == 0
     for name in ("run_over_time.png", "fig7b_run.png"):
         assert (tmp_path / name).stat().st_size > 10_000
     assert not (tmp_path / "fig7a_run.png").exists()
@@ -93,7 +95,7 @@ def test_export_of_a_file_cut_off_mid_row_keeps_the_complete_rows_and_warns(reco
 
 def test_plot_of_a_file_cut_off_mid_row_warns_too(recording, cut_off, tmp_path, capsys):
     _, rows = read_telemetry(recording)
-    assert main(["log", "plot", str(cut_off), str(tmp_path / "figs")]) == 0
+    assert main(["log", "plot", str(cut_off), "--out", str(tmp_path / "figs")]) == 0
     cut, model = capsys.readouterr().err.splitlines(keepends=True)
     _warning(cut, len(rows) - 1, 8 * len(RECORD_COLUMNS) - 100)
     assert "names no model" in model
@@ -110,3 +112,39 @@ def test_export_writes_the_file_it_names(recording, tmp_path):
     out = tmp_path / "run.matlab"
     assert main(["log", "export", str(recording), "--to", "mat", "--out", str(out)]) == 0
     assert "q_1y" in scipy.io.loadmat(out) and not (tmp_path / "run.matlab.mat").exists()
+
+
+def test_an_earlier_export_is_not_replaced_without_force(recording, tmp_path, capsys):
+    """Before, a CSV export over an earlier .mat of the same name replaced it without a word."""
+    out = tmp_path / "run.mat"
+    assert main(["log", "export", str(recording), "--to", "mat", "--out", str(out)]) == 0
+    before = out.read_bytes()
+    capsys.readouterr()
+    assert main(["log", "export", str(recording), "--to", "csv", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "--force" in err and "already" in err and len(err.strip().splitlines()) == 1, err
+    assert out.read_bytes() == before, "the earlier export is untouched"
+    assert main(["log", "export", str(recording), "--to", "csv", "--out", str(out), "--force", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["format"] == "csv"
+
+
+def test_csv_time_stamps_keep_every_sample_apart(tmp_path):
+    """10 significant digits left 2 to 3 distinct times in 1.5 s of a CAN recording that had run
+    for hours; the time column keeps nanoseconds. A recording 10 hours in, at 6000 Hz."""
+    late = tmp_path / "late.btl"
+    with TelemetryWriter(late, RECORD_COLUMNS, capacity=4096) as writer:
+        for k in range(600):
+            row = np.zeros(len(RECORD_COLUMNS))
+            row[0] = 36_000.0 + k / 6000.0
+            writer.push(row)
+    out = tmp_path / "late.csv"
+    assert main(["log", "export", str(late), "--to", "csv", "--out", str(out)]) == 0
+    times = np.array([float(line.split(",")[0]) for line in _table_lines(out)[1:]])
+    recorded = read_telemetry(late)[1][:, 0]
+    np.testing.assert_allclose(times, recorded, rtol=0, atol=1e-9)
+    assert len(np.unique(times)) == len(times)
+
+
+def test_plot_takes_its_folder_as_out_and_names_the_flag_for_a_positional_one(recording, tmp_path, capsys):
+    assert main(["log", "plot", str(recording), str(tmp_path / "figs")]) == 2
+    assert "--out DIR" in capsys.readouterr().err
