@@ -79,15 +79,19 @@ def content_sha256(data: Mapping[str, Any]) -> str:
     return hashlib.sha256(canonical.encode()).hexdigest()
 
 
-def rebuild_advice(path: str | Path) -> str:
-    """What to run to replace a table file that cannot be used."""
-    return (f"rebuild it with `beamctl gains build --out {path}` (with `--config` for a model other "
+def rebuild_advice(path: str | Path, design: str | None = None, mode: str | None = None) -> str:
+    """What to run to replace a table file that cannot be used: the build of its own design
+    (``design``, ``mode`` where the file says them; the build's default is the LQG)."""
+    flags = ""
+    if design == "integral-lqr":
+        flags = " --design integral-lqr" + (" --mode paper" if mode == "paper" else "")
+    return (f"rebuild it with `beamctl gains build{flags} --out {path}` (with `--config` for a model other "
             f"than the paper's) and check it with `beamctl gains check {path}`")
 
 
-def changed_file_message(path: str | Path) -> str:
+def changed_file_message(path: str | Path, design: str | None = None, mode: str | None = None) -> str:
     """Why a table whose content does not match its SHA-256 is refused, and what to run."""
-    return f"the file was changed after it was built; {rebuild_advice(path)}"
+    return f"the file was changed after it was built; {rebuild_advice(path, design, mode)}"
 
 
 @dataclass(frozen=True)
@@ -290,7 +294,8 @@ def write_table(table: GainTable, path: str | Path) -> Path:
     file is refused: writing it would give the change a matching hash."""
     if not table.intact:
         raise GainTableError(CONTENT_HASH, "changed", f"a table as built, not one read from a file "
-                             f"changed after it was built; {rebuild_advice(path)}")
+                             f"changed after it was built; "
+                             f"{rebuild_advice(path, table.design.kind, table.schedule.mode)}")
     if table.checked and not table.all_stable and not table.forced:
         unstable = [c.load_n for c in table.checks if not c.stable]
         raise GainTableError("check.all_stable", False,
@@ -459,7 +464,7 @@ def load_table(path: str | Path, model: ModelParameters | None = None, *,
         found = f"{stored[:16]}..." if isinstance(stored, str) else stored
         raise GainTableError(CONTENT_HASH, found,
                              f"the SHA-256 of the file's content ({content[:16]}...): "
-                             f"{changed_file_message(path)}", source)
+                             f"{changed_file_message(path, design.kind, mode)}", source)
     # a changed file read for inspection: its limits are read as they are (a changed design delay
     # would make the answer budget inconsistent, which the hash has already said)
     ride_through = (_ride_through(data, source, len(loads), design.io.delay_samples,
@@ -474,7 +479,7 @@ def load_table(path: str | Path, model: ModelParameters | None = None, *,
         intact=stored == content, ride_through=ride_through,
         robust=_robust(data, source) if "robust" in data else None)
     if verify:
-        require_checked(table, source, rebuild_advice(path))
+        require_checked(table, source, rebuild_advice(path, design.kind, mode))
     return table
 
 

@@ -36,6 +36,7 @@ and counters; the contract's plans). Two ways to the bus:
 
 from __future__ import annotations
 
+import socket
 import time
 from pathlib import Path
 
@@ -207,7 +208,8 @@ class CanBackend(HalBase):
         try:
             self.bus = self._make_bus(options)
         except (can.CanError, OSError, ValueError, ImportError) as exc:
-            raise HalConnectionLost(f"can: cannot open {self.interface}:{self.channel}: {exc}") from None
+            raise HalConnectionLost(f"can: cannot open {self.interface}:{self.channel}: {exc}"
+                                    f"{open_hint(self.interface, self.channel, exc)}") from None
         if self.record:
             self._recorder = can.Logger(str(self.record))
         c = self.contract
@@ -433,3 +435,29 @@ class CanBackend(HalBase):
         out.update(interface=self.interface, channel=self.channel,
                    bus_load_percent=100 * self.budget.load, bus=self.budget.description)
         return out
+
+
+VCAN_COMMANDS = "sudo modprobe vcan && sudo ip link add dev vcan0 type vcan && sudo ip link set vcan0 up"
+
+
+def socketcan_problem(channel: str) -> str | None:
+    """Why a SocketCAN ``channel`` cannot be opened on this machine, with what to do (None: the
+    kernel has SocketCAN and the interface exists)."""
+    try:
+        socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW).close()
+    except (AttributeError, OSError):
+        return ("this kernel has no SocketCAN (on the lab PC: `sudo modprobe can_raw`; a virtual bus: "
+                f"`{VCAN_COMMANDS}`; without SocketCAN, python-can's virtual or the local bus: "
+                "interface virtual or beamctl_local)")
+    if not Path("/sys/class/net", channel).exists():
+        return (f"no network interface {channel} (`ip link show` lists them; a virtual bus: "
+                f"`{VCAN_COMMANDS}`)")
+    return None
+
+
+def open_hint(interface: str, channel: str, exc: BaseException) -> str:
+    """What to do when opening a bus failed, for the message (empty: nothing to add)."""
+    if interface != "socketcan":
+        return ""
+    problem = socketcan_problem(channel)
+    return f": {problem}" if problem else ""

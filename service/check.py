@@ -20,6 +20,7 @@ from beamctl.common.outputs import OutputPathError, check_new_file
 from beamctl.config.schema import ConfigError
 from beamctl.gains.robust import robust_text
 from beamctl.hal.base import HalError
+from beamctl.hal.can_backend import socketcan_problem
 from beamctl.rt.controller import Controller
 from beamctl.service.control import ControlError, check_socket_path, default_socket_path, request
 from beamctl.service.setup import build_hal, check_voltage_range, load_gain_table, load_service_config
@@ -59,6 +60,10 @@ def check_config(path: str | Path) -> ConfigCheck:
     out.data.update(backend=cfg.hal.backend, pacing=cfg.controller.pacing,
                     model_sha256=cfg.model.digest())
     table = _table(cfg, out)
+    if cfg.hal.backend == "can" and cfg.hal.can["interface"] == "socketcan":
+        problem = socketcan_problem(cfg.hal.can["channel"])     # what opening the bus would meet
+        if problem:
+            out.refusals.append(f"{cfg.source}: hal.can.channel = {cfg.hal.can['channel']!r}: {problem}")
     if table is not None:
         _hal(cfg, table, out)
         try:

@@ -96,7 +96,8 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 def _command_name(args: argparse.Namespace) -> str:
     """``beamctl gains build``: the command and its action, as the user typed them."""
     words = [getattr(args, key, None)
-             for key in ("command", "gains_command", "log_command", "ctl_command", "config_command")]
+             for key in ("command", "gains_command", "log_command", "ctl_command", "config_command",
+                         "model_command")]
     return " ".join(["beamctl", *(w for w in words if w)])
 
 

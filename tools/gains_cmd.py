@@ -115,7 +115,8 @@ def _load(file: str | None, action: str) -> GainTable:
     table = load_table(path, verify=False)
     if not table.intact:
         print(f"beamctl gains {action}: warning: {path}: the content does not match its SHA-256: "
-              f"{changed_file_message(path)}; `beamctl run` refuses it", file=sys.stderr)
+              f"{changed_file_message(path, table.design.kind, table.schedule.mode)}; `beamctl run` refuses "
+              "it", file=sys.stderr)
     return table
 
 

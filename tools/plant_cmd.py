@@ -14,6 +14,7 @@ from beamctl.gains.defaults import default_table_path
 from beamctl.gains.table import load_table
 from beamctl.hal.base import HalConfigurationError
 from beamctl.hal.budget import LIMIT, bus_budget
+from beamctl.hal.can_backend import open_hint
 from beamctl.hal.config import HAL_DEFAULTS, check_bitrates
 from beamctl.hal.dbc import Contract
 from beamctl.hal.emulator import CanPlantEmulator
@@ -81,7 +82,8 @@ def run_plant(args: argparse.Namespace) -> int:
     try:
         bus = can.Bus(interface=interface, channel=channel)
     except (can.CanError, OSError, ValueError, ImportError) as exc:
-        print(f"beamctl plant: error: cannot open {interface}:{channel}: {exc}", file=sys.stderr)
+        print(f"beamctl plant: error: cannot open {interface}:{channel}: {exc}"
+              f"{open_hint(interface, channel, exc)}", file=sys.stderr)
         return 2
     emulator = CanPlantEmulator(bus, plant, plant_geometry(cfg), pace=args.pace,
                                 silence_timeout_s=args.silence_timeout, fallback_ramp_s=args.fallback_ramp,

@@ -224,7 +224,7 @@ def test_unstable_table_is_written_only_when_forced_and_never_runs(tmp_path, pap
     with pytest.raises(GainTableError) as err:
         load_table(path, paper_model.params)
     assert err.value.key == "check.forced" and "unstable at [4250.0, 4500.0] N" in str(err.value)
-    assert f"beamctl gains build --out {path}" in str(err.value)
+    assert f"beamctl gains build --design integral-lqr --out {path}" in str(err.value)
 
 
 def _rewritten(path, edit) -> None:

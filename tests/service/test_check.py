@@ -82,3 +82,14 @@ def test_a_recorded_robust_check_is_kept_in_the_table_and_reported(tmp_path, cap
     out = capsys.readouterr().out
     assert "held: the worst rig of box B goes unstable at 1.1007 x its own critical load" in out, out
     assert "1496 rigs" in out
+
+
+def test_a_socketcan_interface_this_machine_cannot_open_is_a_reason_with_what_to_do(tmp_path):
+    """No SocketCAN in the kernel, or no such interface: either way `beamctl run` could not open
+    the bus, and the reason says how to get one (modprobe, ip link)."""
+    config = _write(tmp_path / "lab.yaml", {"hal": {"backend": "can", "can": {"interface": "socketcan",
+                                                                             "channel": "nosuchcan9"}},
+                                            "control": {"socket": str(tmp_path / "c.sock")}})
+    result = check_config(config)
+    reasons = [r for r in result.refusals if "hal.can.channel = 'nosuchcan9'" in r]
+    assert reasons and ("modprobe" in reasons[0] or "ip link" in reasons[0]), result.refusals

@@ -227,3 +227,9 @@ def test_ctrl_c_before_the_command_is_known_is_one_line(monkeypatch, capsys):
     monkeypatch.setattr(cli, "build_parser", interrupted)
     assert main(["model"]) == 130
     assert capsys.readouterr().err == "beamctl: interrupted (SIGINT)\n"
+
+
+def test_a_model_fit_error_names_the_command_as_typed(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["model", "fit", "missing.npz"]) == 2
+    _one_line_error(capsys, "beamctl model fit: error:", "missing.npz")

@@ -93,3 +93,10 @@ def test_a_bit_rate_no_can_bus_has_is_refused(argv, flag, value, expected, capsy
 def test_the_slowest_and_fastest_can_rates_are_accepted(capsys):
     assert main(["bus-budget", "--bitrate", "10e3", "--rate", "10"]) == 0
     assert main(["bus-budget", "--fd", "--bitrate", "1e6", "--data-bitrate", "8e6"]) == 0
+
+
+def test_a_socketcan_bus_that_cannot_be_opened_says_what_to_do(capsys):
+    assert main(["plant", "--can", "socketcan:nosuchcan9", "--duration", "0.1"]) == 2
+    err = capsys.readouterr().err
+    assert "cannot open socketcan:nosuchcan9" in err and ("modprobe" in err or "ip link" in err), err
+    assert len(err.strip().splitlines()) == 1, err

@@ -55,7 +55,9 @@ def tampered(tmp_path_factory, other_table):
 def test_run_refuses_a_table_changed_by_hand_in_one_line_saying_what_to_run(tmp_path, capsys, tampered):
     line = _refusal(capsys, ["run", "--config", _service(tmp_path, tampered)])
     assert "sha256" in line and "changed after it was built" in line, line
-    assert f"beamctl gains build --out {tampered}" in line and f"beamctl gains check {tampered}" in line, line
+    # the paper's design is rebuilt as that design, not as the build's default LQG
+    assert f"beamctl gains build --design integral-lqr --out {tampered}" in line, line
+    assert f"beamctl gains check {tampered}" in line, line
     assert not (tmp_path / "run.btl").exists(), "refused before anything ran"
 
 
@@ -74,7 +76,8 @@ def test_gains_check_analyses_a_changed_table_and_says_its_hash_does_not_match(c
     assert rows["3500.0"] == "NO" and rows["3000.0"] == "yes", "the x10 gain at 3500 N is unstable there"
     assert "all stable: NO" in captured.out
     assert "content SHA-256: DOES NOT MATCH" in captured.out, captured.out
-    assert "does not match its SHA-256" in captured.err and "beamctl gains build --out" in captured.err
+    assert "does not match its SHA-256" in captured.err
+    assert "beamctl gains build --design integral-lqr --out" in captured.err, captured.err
     assert main(["gains", "check", str(tampered), "--json"]) == 1
     result = json.loads(capsys.readouterr().out)
     assert result["sha256_matches"] is False and result["all_stable"] is False
