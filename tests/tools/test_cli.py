@@ -231,5 +231,5 @@ def test_ctrl_c_before_the_command_is_known_is_one_line(monkeypatch, capsys):
 
 def test_a_model_fit_error_names_the_command_as_typed(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
-    assert main(["model", "fit", "missing.npz"]) == 2
+    assert main(["model", "fit", "missing.npz", "--out", "fitted.yaml"]) == 2
     _one_line_error(capsys, "beamctl model fit: error:", "missing.npz")
