@@ -93,7 +93,7 @@ class CommissionSettings:
     averages: int = 8
     parameters: tuple[str, ...] = ("E", "kr", "damping", "force_constant")
     robust: bool = True
-    grid_n: tuple[float, float, float] | None = None     # the table's load grid (default: the design's)
+    grid_n: tuple[float, float, float] | None = None     # the table's load grid (default: default_grid)
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -150,7 +150,8 @@ class Commission:
         if state.exists():
             try:
                 recorded = json.loads(state.read_text())
-                same = {k: recorded[k] for k in self.identity} == self.identity
+                # a folder of an earlier beamctl lacks keys: another commissioning, not a damaged one
+                same = {k: recorded.get(k) for k in self.identity} == self.identity
                 done = list(recorded["done"])
             except (ValueError, KeyError, TypeError):
                 raise ConfigError("--out", str(self.out), f"a commissioning folder ({STATE} there is "

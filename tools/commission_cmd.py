@@ -36,8 +36,8 @@ def add_parser(sub) -> None:
                    help="averaged excitation periods per input (default 8)")
     p.add_argument("--params", default="E,kr,damping,force_constant", metavar="P,P,...",
                    help="parameters to fit (default E,kr,damping,force_constant)")
-    p.add_argument("--grid", metavar="START:STOP:STEP", help="the table's load grid in N (default the "
-                   "design's, 0:4000:100)")
+    p.add_argument("--grid", metavar="START:STOP:STEP", help="the table's load grid in N (default: every "
+                   "100 N to 1.2 x the fitted model's critical load, at most 4000 N)")
     p.add_argument("--no-robust", action="store_true", help="leave out the robust check (minutes)")
     p.add_argument("--json", action="store_true", help="print the folder's summary as one JSON object")
     p.set_defaults(run=run)

@@ -89,3 +89,30 @@ def test_kl_and_kp_held_at_the_wrong_values_are_warned_of_by_the_misfit(rig_klp)
     assert abs(error) > 0.1, f"kr only {100 * error:.1f} % off: this rig no longer shows the case"
     assert result.misfit > 2.0
     assert any(w.startswith("the residual is") and "kl, kp" in w for w in result.warnings), result.warnings
+
+
+def test_the_misfit_is_one_for_measurements_noisy_as_their_coherence_says_whatever_their_averages():
+    """Two files of the model's own response, with the noise an H1 estimate of coherence 0.99 has
+    over 8 and over 64 averages (each part of the log error of variance (1 - g2) / (2 n g2)): the
+    model explains them down to that noise, misfit 1 (the 0.1 allows the random draw: about 9000
+    points). Before, the fewest averages stood for all, and this gave 0.56."""
+    params = load_parameters()
+    freqs = np.arange(10.0, 1201.0, 2.0)
+    g = fe_frequency_response(build_model(params), 2000.0, freqs)
+    rng = np.random.default_rng(5)
+    data = []
+    for n in (8, 64):
+        sd = np.sqrt(0.01 / (2 * n * 0.99))
+        noise = np.exp(rng.normal(0, sd, g.shape) + 1j * rng.normal(0, sd, g.shape))
+        data.append(FrfData(frequencies_hz=freqs, frf=g * noise, coherence=np.full(g.shape, 0.99),
+                            load_n=2000.0, settings={"identify": {"averages": n}}, source=f"{n} averages"))
+    result = fit(params, data, FitSettings(parameters=("E",), mesh_correction=False))
+    assert abs(result.misfit - 1.0) < 0.1, result.misfit
+
+
+def test_a_file_that_does_not_say_its_averages_gives_no_misfit():
+    _, data = _measured(RIG)
+    odd = FrfData(frequencies_hz=data.frequencies_hz, frf=data.frf, coherence=data.coherence, load_n=2000.0,
+                  settings={"identify": "8 averages"}, source="odd")
+    result = fit(load_parameters(), [odd], FitSettings(parameters=("E", "kr"), mesh_correction=False))
+    assert result.misfit is None
