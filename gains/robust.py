@@ -580,9 +580,11 @@ def robust_text(record: Mapping[str, Any] | None) -> str:
     if not record:
         return "not recorded in the table (`beamctl gains check --robust --record FILE` records it)"
     held = "held" if record["worst_ratio"] >= 1.0 else "NOT HELD"
-    return (f"{held}: the worst rig of {record.get('box_name', 'its box')} goes unstable at "
-            f"{record['worst_ratio']:.4f} x its own critical load ({record.get('evaluated', '?')} rigs "
-            f"searched, {record.get('checked', 'time not recorded')})")
+    where = (f"stays stable to the table's end, at least {record['worst_ratio']:.4f} x its own critical load"
+             if record.get("censored") else
+             f"goes unstable at {record['worst_ratio']:.4f} x its own critical load")
+    return (f"{held}: the worst rig of {record.get('box_name', 'its box')} {where} "
+            f"({record.get('evaluated', '?')} rigs searched, {record.get('checked', 'time not recorded')})")
 
 
 def rig_si(table: GainTable, box: Box, values: Mapping[str, float]) -> dict[str, float]:
