@@ -49,11 +49,14 @@ def _client(args: argparse.Namespace):
         except OSError as exc:
             raise ConfigError("--scheduler", args.scheduler,
                               f"the address of a running Dask scheduler ({exc})") from None
+    import logging
     import os
 
     workers = int(args.workers or os.cpu_count() or 1)
+    # any free dashboard port: never a clash with another; the workers log errors only (Ctrl-C
+    # cancels their tasks, and each said so in a warning of its own after the one-line interrupt)
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
-                           dashboard_address=":0")    # any free port: never a clash with another
+                           dashboard_address=":0", silence_logs=logging.ERROR)
     return Client(cluster), cluster
 
 
