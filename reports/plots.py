@@ -179,10 +179,14 @@ def _gain_panel(ax, loads_n: np.ndarray, curves: Sequence[tuple[str, np.ndarray]
     every = np.concatenate(magnitudes)
     positive = every[every > 0]
     log = positive.size > 0 and positive.max() > LOG_AXIS_RANGE * positive.min()
-    for (label, _), v, style in zip(curves, magnitudes, ("-", "--", ":"), strict=False):
+    for (label, signed), v, style in zip(curves, magnitudes, ("-", "--", ":"), strict=False):
+        sign = _sign_note(loads_n, signed)
+        shown = label if "|" in label else f"|{label}|"         # "sum |C|" is a magnitude already
         if np.ptp(v) <= CONSTANT_GAIN * v.max():
             v = np.full_like(v, v.mean())
-            label = f"{label} = {v[0]:.4g} (constant)"
+            label = f"{shown} = {v[0]:.4g} (constant{', ' + sign if sign else ''})"
+        else:
+            label = shown + (f" ({sign})" if sign else "")
         ax.plot(loads_n, v, marker + style, ms=3, label=label)
     if log:
         ax.set_yscale("log")
@@ -190,6 +194,19 @@ def _gain_panel(ax, loads_n: np.ndarray, curves: Sequence[tuple[str, np.ndarray]
         ax.set_ylim(0.0, 1.15 * every.max() if every.max() > 0 else 1.0)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8, loc="lower left")
+
+
+def _sign_note(loads_n: np.ndarray, values: np.ndarray) -> str:
+    """What the magnitude hides: "negative" throughout, or where the sign changes ("" when
+    positive throughout)."""
+    values = np.asarray(values, dtype=float)
+    if np.all(values >= 0):
+        return ""
+    if np.all(values <= 0):
+        return "negative"
+    flips = np.flatnonzero(np.signbit(values[1:]) != np.signbit(values[:-1]))
+    where = ", ".join(f"{0.5 * (loads_n[i] + loads_n[i + 1]):.0f}" for i in flips[:3])
+    return f"changes sign near {where} N"
 
 
 def gains_figure(table):
@@ -203,7 +220,7 @@ def gains_figure(table):
         groups = [("displacement gains (N per modal unit)", (0, 2)),
                   ("velocity gains (N s per modal unit)", (4, 6)),
                   ("integral gains (N per modal unit s)", (8, 10))]
-        ylabel, title = "|K| (row Fay,A)", "Integral LQR gains K(Fx)"
+        ylabel, title = "|K| (row Fay,A; signs in the legend)", "Integral LQR gains K(Fx)"
     else:
         comp = table.compensator
         names = {0: "D y1", 1: "D y2", 2: "Ki y1", 3: "Ki y2", 4: "sum |C|"}
@@ -211,7 +228,8 @@ def gains_figure(table):
                                 np.abs(comp.c[:, 0, :]).sum(axis=1)])
         groups = [("direct gains D (N per strain)", (0, 1)), ("integral gains Ki (N per unit of xi)", (2, 3)),
                   ("state gains, sum of |C| (N per state unit)", (4,))]
-        ylabel, title = "row Fay,A", f"Compensator gains ({table.design.kind})"
+        ylabel = "magnitude (row Fay,A; signs in the legend)"
+        title = f"Compensator gains ({table.design.kind})"
     marker = "o" if table.schedule.mode == "paper" else ""
     for ax, (group_title, cols) in zip(axes, groups, strict=True):
         _gain_panel(ax, table.loads_n, [(names[c], rows[:, c]) for c in cols], marker)

@@ -105,6 +105,9 @@ def add_parser(sub) -> None:
     s = gsub.add_parser("show", help="gains versus load")
     s.add_argument("file", nargs="?", help="gain table (default: the shipped gains/default.yaml)")
     s.add_argument("--plot", metavar="DIR", help="write gains versus load as PNG into DIR")
+    s.add_argument("--json", action="store_true",
+                   help="print the table's description (design, check, hashes, robust check, gains by load) "
+                        "as one JSON object")
     s.set_defaults(run=run_show)
 
 
@@ -351,6 +354,19 @@ def run_show(args: argparse.Namespace) -> int:
     table = _load(args.file, "show")
     d, s = table.design, table.schedule
     comp = table.compensator
+    if args.json:
+        written = str(plots.gains_vs_load(table, plot_dir / "gains_vs_load.png")) if plot_dir else None
+        print(json.dumps({
+            "file": str(args.file or default_table_path()), "created": table.created,
+            "tool_version": table.tool_version, "model_sha256": table.model_sha256, "sha256": table.sha256,
+            "content_matches": table.intact, "design": d.kind, "sample_rate_hz": d.sample_rate_hz,
+            "io": d.io.to_dict(), "schedule": s.mode, "loads_N": [float(x) for x in table.loads_n],
+            "compensator_states": comp.n_states, "all_stable": table.all_stable, "forced": table.forced,
+            "robust": table.robust, "plot": written,
+            "gains_A_y": {"unit": "N per unit strain (D, the feedthrough) and N per unit strain per "
+                                  "sample (Ki)",
+                          "D": comp.d[:, 0, :].tolist(), "Ki": comp.ki[:, 0, :].tolist()}}, indent=1))
+        return 0
     print(f"gain table: {args.file or default_table_path()}")
     print(f"created {table.created} by beamctl {table.tool_version}; "
           f"model sha256 {table.model_sha256[:16]}...")
@@ -371,12 +387,14 @@ def run_show(args: argparse.Namespace) -> int:
     print()
     step = max(1, len(table.loads_n) // 16)
     if table.gains is not None:
-        print("gains of support A, y direction (row Fay,A), by state:")
+        print("gains of support A, y direction (row Fay,A), signed, by state: N per modal unit (q), N s per "
+              "modal unit (dq), N per modal unit s (iq):")
         names = ["q1y", "q2y", "dq1y", "dq2y", "iq1y", "iq2y"]
         cols = [0, 2, 4, 6, 8, 10]
         rows = table.gains[:, 0, :]
     else:
-        print("compensator gains of support A, y direction (row Fay,A): D and Ki, by gauge channel:")
+        print("compensator gains of support A, y direction (row Fay,A), signed: D in N per unit strain, "
+              "by gauge; Ki in N per unit of xi (the summed T H y), by channel:")
         names = ["D y1", "D y2", "Ki y1", "Ki y2"]
         cols = [0, 2, 4, 6]
         rows = np.concatenate([comp.d[:, 0, :], comp.ki[:, 0, :]], axis=1)

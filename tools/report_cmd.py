@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -19,6 +20,8 @@ def add_parser(sub) -> None:
                                    "state changes and faults, and its figures of merit.")
     p.add_argument("recording", metavar="RUN", help="telemetry file (.btl)")
     p.add_argument("--out", metavar="FILE.html", help="the page (default: RUN with the suffix .html)")
+    p.add_argument("--json", action="store_true", help="print the page's path and the figures of merit as "
+                                                       "one JSON object")
     p.set_defaults(run=run)
 
 
@@ -30,6 +33,9 @@ def run(args: argparse.Namespace) -> int:
         raise OutputPathError(what, out, "it is the recording being reported")
     page, merit = report.write_report(args.recording, out, warn=lambda text: print(
         f"beamctl report: warning: {text}", file=sys.stderr))
+    if args.json:
+        print(json.dumps({"page": str(page), "merit": merit}, indent=1))
+        return 0
     faults = ", ".join(merit["faults"]) or "none"
     print(f"wrote {page} ({merit['samples']} samples, {merit['duration_s']:.2f} s, "
           f"ended {merit['end_state']}, faults: {faults})")

@@ -177,7 +177,7 @@ def test_a_constant_integral_gain_is_drawn_as_its_value_on_a_linear_axis(close):
     for line in integral.get_lines()[:2]:
         y = np.asarray(line.get_ydata())
         assert np.ptp(y) == 0.0 and y[0] == pytest.approx(gains.mean(), rel=1e-9)
-        assert "(constant)" in line.get_label() and "1.581e+07" in line.get_label()
+        assert "(constant" in line.get_label() and "1.581e+07" in line.get_label()
     low, high = integral.get_ylim()
     assert low == 0.0 and gains.max() < high < 1.3 * gains.max()
     assert _panel(fig, "displacement gains").get_yscale() == "log", "gains over decades stay on a log axis"
@@ -193,4 +193,17 @@ def test_a_gain_that_varies_by_ten_percent_is_on_a_linear_axis_and_shows_its_tre
     assert integral.get_yscale() == "linear"
     y = np.asarray(integral.get_lines()[0].get_ydata())
     assert np.ptp(y) > 0.05 * y.max(), "the trend is drawn, not flattened"
-    assert "(constant)" not in integral.get_lines()[0].get_label()
+    assert "(constant" not in integral.get_lines()[0].get_label()
+
+
+def test_magnitudes_say_what_sign_they_hide(close):
+    """The shipped design's D and Ki are negative at every load: drawn as magnitudes, the legend
+    says so (before, -5e6 in the table was +5e6 on the plot, without a word)."""
+    table = load_table(default_table_path())
+    fig = plots.gains_figure(table)
+    close(fig)
+    assert np.all(table.compensator.ki[:, 0, 0] < 0), "the premise: a negative integral gain"
+    labels = [line.get_label() for line in _panel(fig, "integral gains").get_lines()]
+    assert labels[0] == "|Ki y1| (negative)", labels
+    assert plots._sign_note(np.array([0.0, 100.0, 200.0]), np.array([-1.0, -0.5, 0.5])) == \
+        "changes sign near 150 N"

@@ -200,3 +200,10 @@ def test_recording_into_the_shipped_table_is_refused(capsys):
     err = capsys.readouterr().err
     assert "--record" in err and "shipped tables are not changed" in err
     assert len(err.strip().splitlines()) == 1, err
+
+
+def test_show_and_report_answer_in_json(tmp_path, capsys):
+    assert main(["gains", "show", "--json"]) == 0
+    shown = json.loads(capsys.readouterr().out)
+    assert shown["design"] == "lqg" and shown["all_stable"] and shown["content_matches"], shown.keys()
+    assert len(shown["gains_A_y"]["D"]) == len(shown["loads_N"]) and "unit" in shown["gains_A_y"]
