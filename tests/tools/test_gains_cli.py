@@ -202,7 +202,7 @@ def test_recording_into_the_shipped_table_is_refused(capsys):
     assert len(err.strip().splitlines()) == 1, err
 
 
-def test_show_and_report_answer_in_json(tmp_path, capsys):
+def test_show_answers_in_json(capsys):
     assert main(["gains", "show", "--json"]) == 0
     shown = json.loads(capsys.readouterr().out)
     assert shown["design"] == "lqg" and shown["all_stable"] and shown["content_matches"], shown.keys()
