@@ -297,6 +297,8 @@ FAILURE_DEFLECTION_M = 1.0e-3
 # a beam this far out has failed (what a recording holds beyond it is a lost beam or a simulation
 # diverging): a figure's scale stops here
 OFF_SCALE_M = 5.0e-3
+# a figure 7a whose runs start above this load is drawn from where they start, not from 0 N
+ZOOM_FROM_N = 1000.0
 # a controlled run whose deflection while held stays below this fraction of the figure's
 # scale lies flat in it: figure 7a magnifies the controlled runs
 FLAT_FRACTION = 0.1
@@ -334,14 +336,22 @@ def _held(run: RunCurves) -> np.ndarray:
 def figure_7a(runs: Sequence[RunCurves], critical_load_n: float | None = None, paper: bool = True):
     """Figure 7a: the deflection's y and z components (absolute, as the paper plots q1,y and
     q1,z) and its magnitude versus load, in mm, every run; the paper's measured points as points
-    (``paper``); and, when a controlled run lies flat at this scale, its held part magnified (um)."""
+    (``paper``); and, when a controlled run lies flat at this scale, its held part magnified (µm)
+    near the critical load, where the controlled runs part from the uncontrolled one."""
     plt = _pyplot()
     scale_m = _scale(runs)
     magnify = [r for r in runs if r.controlled and _held(r).any()]
     if not any(_held_top(r) < FLAT_FRACTION * scale_m for r in magnify):
         magnify = []
-    fig, axes = plt.subplots(2, 2, figsize=(11, 7.8), sharex=True, layout="constrained")
-    ax_y, ax_z, ax_m, ax_h = axes.ravel()
+    loads = np.concatenate([r.load_n for r in runs]) if runs else np.zeros(1)
+    low = float(np.nanmin(loads))
+    # a run that starts far up the load (a recording of the lab's 2800 to 3300 N) is drawn where it ran
+    x_low = 0.0 if low < ZOOM_FROM_N else max(0.0, low - 100.0)
+    x_high = max(float(np.nanmax(loads)) + 100.0, (critical_load_n or 0.0) + 300.0)
+    mosaic = [["y", "z"], ["m", "h"]] if magnify else [["y", "z"], ["m", "m"]]
+    fig, named = plt.subplot_mosaic(mosaic, figsize=(11, 7.8), layout="constrained")
+    ax_y, ax_z, ax_m = named["y"], named["z"], named["m"]
+    ax_h = named.get("h")
     top_mm = 1.08 * scale_m * 1e3
     panels = ((ax_y, "(a) y component |w_y|", lambda r: np.abs(r.deflection_y_m)),
               (ax_z, "(b) z component |w_z|", lambda r: np.abs(r.deflection_z_m)),
@@ -351,13 +361,14 @@ def figure_7a(runs: Sequence[RunCurves], critical_load_n: float | None = None, p
         for r in runs:
             ax.plot(r.load_n, of(r) * 1e3, r.style, color=r.color, lw=r.width)
         ax.set_ylim(-0.03 * top_mm, top_mm)
+        ax.set_xlim(x_low, x_high)
         ax.set_title(title, fontsize=10)
         ax.set_ylabel("deflection in mm")
     for level in (0.5, 1.0):
         ax_m.axhline(level, color="0.75", lw=0.6, zorder=0)
     if paper:
-        loads, values = zip(*PAPER_UNCONTROLLED_POINTS, strict=True)
-        ax_m.plot(loads, np.array(values) * 1e3, "o", ms=8, mfc="white", mec="k", mew=1.5, zorder=5,
+        points, values = zip(*PAPER_UNCONTROLLED_POINTS, strict=True)
+        ax_m.plot(points, np.array(values) * 1e3, "o", ms=8, mfc="white", mec="k", mew=1.5, zorder=5,
                   label="paper, uncontrolled: 0.5 mm at 2438 N, 1.0 mm at 2723 N", gid="paper-uncontrolled")
         ax_m.plot([PAPER_CONTROLLED_MAX_LOAD_N], [0.0], "^", ms=9, mfc="white", mec="k", mew=1.5, zorder=5,
                   clip_on=False,
@@ -365,33 +376,38 @@ def figure_7a(runs: Sequence[RunCurves], critical_load_n: float | None = None, p
                   gid="paper-controlled")
     if critical_load_n:
         for ax in (ax_y, ax_z, ax_m, ax_h):
-            ax.axvline(critical_load_n, color="k", lw=0.8, ls="--",
-                       label=f"critical load Fx,cr = {critical_load_n:.0f} N" if ax is ax_m else None)
+            if ax is not None:
+                ax.axvline(critical_load_n, color="k", lw=0.8, ls="--",
+                           label=f"critical load Fx,cr = {critical_load_n:.0f} N" if ax is ax_m else None)
     ax_m.legend(fontsize=7.5, loc="upper left")
     if magnify:
         held_top = max(_held_top(r) for r in magnify)
+        held_loads = np.concatenate([r.load_n[_held(r)] for r in magnify])
+        handles = []
         for r in magnify:
             held = _held(r)
-            ax_h.plot(r.load_n[held], np.abs(r.deflection_y_m[held]) * 1e6, "-", color=r.color, lw=1.0)
-            ax_h.plot(r.load_n[held], np.abs(r.deflection_z_m[held]) * 1e6, "--", color=r.color, lw=1.0)
-            if r.beam_deflection_m is not None and r.beam_deflection_m.size:
-                ax_h.plot(r.load_n[held], r.beam_deflection_m[held] * 1e6, ":", color=r.color, lw=1.4)
+            for values, style, width, what in (
+                    (np.abs(r.deflection_y_m[held]), "-", 1.0, "|w_y| (gauges)"),
+                    (np.abs(r.deflection_z_m[held]), "--", 1.0, "|w_z| (gauges)"),
+                    (r.beam_deflection_m[held] if r.beam_deflection_m is not None and r.beam_deflection_m.size
+                     else None, ":", 1.4, "|w| of the simulated beam (not seen by the gauges)")):
+                if values is None:
+                    continue
+                ax_h.plot(r.load_n[held], values * 1e6, style, color=r.color, lw=width)
+                name = r.label.removeprefix("controlled, ").split(",")[0]
+                handles.append(plt.Line2D([], [], color=r.color, ls=style, lw=width, label=f"{name}: {what}"))
         ax_h.set_ylim(0.0, 1.2 * held_top * 1e6)
-        styles = [plt.Line2D([], [], color="0.3", ls="-", label="|w_y| (gauges)"),
-                  plt.Line2D([], [], color="0.3", ls="--", label="|w_z| (gauges)")]
-        if any(r.beam_deflection_m is not None and r.beam_deflection_m.size for r in magnify):
-            styles.append(plt.Line2D([], [], color="0.3", ls=":", lw=1.4,
-                                     label="|w| of the simulated beam (not seen by the gauges)"))
-        ax_h.legend(handles=styles, fontsize=7.5, loc="upper left")
-        ax_h.set_title("(d) controlled runs magnified, until their stacks reach a limit", fontsize=10)
-        ax_h.set_ylabel("deflection in um")
-    else:
-        ax_h.set_visible(False)
-    loads = np.concatenate([r.load_n for r in runs]) if runs else np.zeros(1)
-    ax_y.set_xlim(0.0, max(float(loads.max()) + 100.0, (critical_load_n or 0.0) + 300.0))
+        # where the story is: from a little below the critical load to where the stacks ran out
+        zoom_low = min(0.9 * critical_load_n, float(held_loads.max()) - 200.0) if critical_load_n else x_low
+        ax_h.set_xlim(max(x_low, zoom_low), float(held_loads.max()) + 50.0)
+        ax_h.legend(handles=handles, fontsize=6.5, loc="best")
+        ax_h.set_title("(d) controlled runs magnified near Fx,cr, until their stacks reach a limit",
+                       fontsize=10)
+        ax_h.set_ylabel("deflection in µm")
     for ax in (ax_m, ax_h):
-        ax.set_xlabel("axial load Fx in N")
-    for ax in axes.ravel():
+        if ax is not None:
+            ax.set_xlabel("axial load Fx in N")
+    for ax in named.values():
         ax.grid(True, alpha=0.3)
     fig.legend(handles=[plt.Line2D([], [], color=r.color, ls=r.style, lw=r.width, label=r.label)
                         for r in runs], loc="outside lower center", ncol=min(len(runs), 3), fontsize=8.5)
@@ -450,7 +466,7 @@ def figure_7b(runs: Sequence[RunCurves], paper: bool = True):
 
 
 def _held_inset(ax, run: RunCurves) -> None:
-    """An inset (um) of the run's path while it was held, in the quadrant its failure leaves free."""
+    """An inset (µm) of the run's path while it was held, in the quadrant its failure leaves free."""
     held = _held(run)
     if not held.any():
         return
@@ -466,7 +482,7 @@ def _held_inset(ax, run: RunCurves) -> None:
     inset.set_ylim(-half, half)
     inset.set_aspect("equal")
     inset.tick_params(labelsize=6)
-    inset.set_title(f"held, in um (until {run.load_n[held][-1]:.0f} N)", fontsize=6.5)
+    inset.set_title(f"held, in µm (until {run.load_n[held][-1]:.0f} N)", fontsize=6.5)
 
 
 _RUN_STYLE = {"uncontrolled": ("0.35", "uncontrolled", "-", 1.6),
@@ -500,26 +516,29 @@ def _first(mask: np.ndarray) -> int | None:
 
 
 def voltages_figure(summary: dict, traces: dict):
-    """The controlled runs' highest and lowest stack voltage versus load, with the limits."""
+    """Per controlled run, one panel: the highest and the lowest of the six stack voltages at
+    each load (the band between them), with the limits (panels of their own: two translucent
+    bands on one axis mixed into a colour no legend named)."""
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(8, 4.5))
-    for mode, trace in traces.items():
-        if mode == "uncontrolled":
-            continue
-        a = trace.arrays()
+    modes = [m for m in traces if m != "uncontrolled"]
+    fig, axes = plt.subplots(len(modes) or 1, 1, figsize=(8, 2.2 + 2.3 * max(len(modes), 1)), sharex=True,
+                             squeeze=False, layout="constrained")
+    for ax, mode in zip(axes[:, 0], modes, strict=False):
+        a = traces[mode].arrays()
         color, label, _, _ = _RUN_STYLE[mode]
-        ax.fill_between(a["load_n"], a["v_min"], a["v_max"], color=color, alpha=0.25, lw=0)
-        ax.plot(a["load_n"], a["v_max"], color=color, lw=0.8, label=f"{label}: highest and lowest stack")
-        ax.plot(a["load_n"], a["v_min"], color=color, lw=0.8)
-    for limit in (0.0, 150.0):
-        ax.axhline(limit, color="tab:red", lw=0.8, ls="--")
-    ax.set_ylim(-5, 155)
-    ax.set_xlabel("axial load Fx in N")
-    ax.set_ylabel("stack voltage in V")
-    ax.set_title("Piezo stack voltages versus load (limits 0 and 150 V)")
-    ax.legend(fontsize=7, loc="lower left")
-    ax.grid(True, alpha=0.3)
-    fig.tight_layout()
+        ax.fill_between(a["load_n"], a["v_min"], a["v_max"], color=color, alpha=0.25, lw=0,
+                        label="between the lowest and the highest stack")
+        ax.plot(a["load_n"], a["v_max"], color=color, lw=0.9, label="highest stack")
+        ax.plot(a["load_n"], a["v_min"], color=color, lw=0.9, ls="--", label="lowest stack")
+        for limit in (0.0, 150.0):
+            ax.axhline(limit, color="tab:red", lw=0.8, ls=":")
+        ax.set_ylim(-5, 155)
+        ax.set_ylabel("stack voltage in V")
+        ax.set_title(label, fontsize=9)
+        ax.legend(fontsize=7, loc="lower left")
+        ax.grid(True, alpha=0.3)
+    axes[-1, 0].set_xlabel("axial load Fx in N")
+    fig.suptitle("Piezo stack voltages versus load (limits 0 and 150 V, dotted red)", fontsize=11)
     return fig
 
 
@@ -534,7 +553,7 @@ def experiment_figures(summary: dict, traces: dict, out_dir: Path) -> list[Path]
 
 # -- a run over time (beamctl log plot, beamctl report) ---------------------------------------
 
-SYMLOG_LINEAR_M = 10e-6      # the deflection axis over time is linear within 10 um of zero
+SYMLOG_LINEAR_M = 10e-6      # the deflection axis over time is linear within 10 µm of zero
 CRITICAL_LOAD_SHOWN = 0.8    # a run's load drawn against the critical load once it comes this close
 # stacks 1, 2, 3 of a support: a colour and a line style each, the same at both supports
 _STACK_STYLE = (("tab:blue", "-"), ("tab:red", "--"), ("tab:green", "-."))
@@ -568,14 +587,16 @@ def run_over_time(run: RunRecord, part: str = ""):
     top = float(np.nanmax(run.deflection_m))
     if top > OFF_SCALE_M:
         lost = int(np.flatnonzero(run.deflection_m > OFF_SCALE_M)[0])
-        ax_d.annotate(f"off scale from {run.time_s[lost]:.2f} s (the beam is lost)", (run.time_s[lost], 0.9),
-                      xycoords=("data", "axes fraction"), xytext=(-6, 0), textcoords="offset points",
-                      ha="right", va="center", fontsize=8, color="tab:red")
+        right_half = run.time_s[lost] > 0.5 * (run.time_s[0] + run.time_s[-1])     # the side with room
+        ax_d.annotate(f"off scale from {run.time_s[lost]:.2f} s (the beam is lost)", (run.time_s[lost], 0.72),
+                      xycoords=("data", "axes fraction"), xytext=(-6 if right_half else 6, 0),
+                      textcoords="offset points", ha="right" if right_half else "left", va="center",
+                      fontsize=8, color="tab:red")
     top = 1.5 * max(min(top, OFF_SCALE_M), SYMLOG_LINEAR_M) * 1e3
     ax_d.set_ylim(-top, top)
     ax_d.set_ylabel("deflection in mm")
     ax_d.set_title("deflection at its largest point along the beam (strain gauges; linear within "
-                   f"{SYMLOG_LINEAR_M * 1e6:g} um of zero, logarithmic beyond)", fontsize=9)
+                   f"{SYMLOG_LINEAR_M * 1e6:g} µm of zero, logarithmic beyond)", fontsize=9)
     ax_d.legend(fontsize=8, loc="upper left", ncol=3)
     if np.isfinite(run.load_n).any():
         ax_l.plot(t, run.load_n[::k], color="0.6", lw=0.6, label="load cell")

@@ -44,6 +44,8 @@ REPORT_DPI = 100
 # last moments, from EVENT_LEAD_S before the first saturation or fault to the end
 LONG_RUN_S = 10.0
 EVENT_LEAD_S = 2.0
+EVENT_AFTER_S = 2.0
+SATURATION_EVENT_S = 0.01           # a saturation this long is an event of the run
 
 
 # the per-sample series of a record (what ``RunRecord.window`` slices)
@@ -311,10 +313,17 @@ def run_curves(run: RunRecord, color: str = "tab:blue"):
 
 
 def first_event_s(run: RunRecord) -> float | None:
-    """The time of the run's first saturation or fault (None: neither happened)."""
-    events = (run.fault != Fault.NONE) | run.saturated("A") | run.saturated("B")
-    hits = np.flatnonzero(events)
-    return float(run.time_s[hits[0]]) if hits.size else None
+    """The time of the run's first fault or first saturation lasting SATURATION_EVENT_S (a
+    stack touching its limit for a sample or two as the controller starts is no event; None:
+    neither happened)."""
+    saturated = run.saturated("A") | run.saturated("B")
+    rate = run.sample_rate_hz if math.isfinite(run.sample_rate_hz) else 0.0
+    need = max(1, int(round(SATURATION_EVENT_S * rate)))
+    lasting = np.convolve(saturated.astype(np.int32), np.ones(need, dtype=np.int32), "full")[:len(saturated)]
+    starts = np.flatnonzero(lasting >= need) - (need - 1)       # where a saturation that lasted began
+    hits = np.flatnonzero(run.fault != Fault.NONE)
+    times = [float(run.time_s[i]) for i in (hits[:1].tolist() + starts[:1].tolist())]
+    return min(times) if times else None
 
 
 def run_figures(run: RunRecord) -> dict[str, Any]:
@@ -325,8 +334,15 @@ def run_figures(run: RunRecord) -> dict[str, Any]:
     event = first_event_s(run)
     if event is not None and run.time_s[-1] > LONG_RUN_S:
         start = max(0.0, event - EVENT_LEAD_S)
-        part = f"from {start:.1f} s ({event - start:g} s before its first saturation or fault)"
-        figures["run_end.png"] = plots.run_over_time(run.window(start, float(run.time_s[-1])), part)
+        # to EVENT_AFTER_S past the event, or past where the beam went off the scale: the event in
+        # the middle of the window, not squeezed into its left edge by a long wait at bias after it
+        lost = np.flatnonzero(run.deflection_m > OFF_SCALE_M)
+        end = event + EVENT_AFTER_S
+        if lost.size and run.time_s[lost[0]] >= event:
+            end = max(end, float(run.time_s[lost[0]]) + 0.5)
+        end = min(end, float(run.time_s[-1]))
+        part = f"{start:.2f} to {end:.2f} s ({event - start:.2f} s before its first saturation or fault)"
+        figures["run_end.png"] = plots.run_over_time(run.window(start, end), part)
     curves = [run_curves(run)]
     if np.nanmax(run.load_n) - np.nanmin(run.load_n) > LOAD_VARIES_N:
         figures["fig7a_run.png"] = plots.figure_7a(curves, run.critical_load_n, paper=False)

@@ -76,6 +76,32 @@ def test_figure_7a_draws_the_controlled_runs_at_a_scale_that_shows_them(experime
     assert min(tops) * 1e-3 < 0.1 * full, "the magnified panel shows what the full scale cannot"
 
 
+def test_figure_7a_magnifies_the_controlled_runs_near_the_critical_load(experiment, close):
+    """Where the story is: 3194 -> 3225 N was a 30 N sliver of a 0 to 3500 N axis. Panel (d)
+    spans from 0.9 x Fx,cr to where the stacks ran out; its legend names each run by colour."""
+    summary, _, runs = experiment
+    fcr = summary["critical_load_N"]
+    fig = plots.figure_7a(runs, fcr)
+    close(fig)
+    low, high = _panel(fig, "(d)").get_xlim()
+    assert 0.85 * fcr <= low < fcr < high < fcr + 400.0, (low, high)
+    colours = {h.get_color() for h in _panel(fig, "(d)").get_legend().legend_handles}
+    assert colours == {r.color for r in runs if r.controlled}, colours
+    assert _panel(fig, "(d)").get_ylabel() == "deflection in µm"
+
+
+def test_figure_7a_of_a_run_high_up_the_load_is_drawn_where_it_ran_without_an_empty_panel(close):
+    """A recording from 2800 to 3300 N kept a 0 to 3500 N axis and an empty fourth panel."""
+    load = np.linspace(2800.0, 3300.0, 500)
+    run = plots.RunCurves(label="run", color="tab:blue", controlled=True, load_n=load,
+                          deflection_y_m=1e-4 + 0 * load, deflection_z_m=1e-4 + 0 * load, held_samples=None)
+    fig = plots.figure_7a([run], 3194.0, paper=False)
+    close(fig)
+    low, high = _panel(fig, "(c)").get_xlim()
+    assert 2600.0 <= low <= 2800.0 and 3300.0 < high <= 3600.0, (low, high)
+    assert all(ax.get_visible() and ax.has_data() for ax in fig.axes), "no empty panel"
+
+
 def test_figure_7a_plots_the_y_and_z_components_as_the_paper_plots_q1y_and_q1z(experiment, close):
     summary, _, runs = experiment
     fig = plots.figure_7a(runs, summary["critical_load_N"])
@@ -147,7 +173,7 @@ def test_figure_7b_shows_a_controlled_run_held_at_the_origin_magnified(experimen
     fig = plots.figure_7b(runs)
     close(fig)
     insets = [inset for ax in fig.axes for inset in ax.child_axes
-              if inset.get_title().startswith("held, in um")]
+              if inset.get_title().startswith("held, in µm")]
     assert len(insets) == sum(r.controlled for r in runs)
     for inset in insets:
         path = max(inset.get_lines(), key=lambda line: len(line.get_xdata()))
