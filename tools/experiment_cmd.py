@@ -34,9 +34,10 @@ def add_parser(sub) -> None:
     p.add_argument("--config", metavar="F", help="scenario file (plant, controller, model, experiment)")
     p.add_argument("--out", metavar="DIR", default="experiment-report",
                    help="report folder (default: experiment-report here)")
-    p.add_argument("--telemetry", action="store_true",
-                   help="also record each run's full-rate telemetry into the report folder "
-                        "(telemetry_<mode>.btl, about 40 MB a run with the default scenario)")
+    p.add_argument("--telemetry", nargs="?", const="", default=None, metavar="DIR",
+                   help="also record each run's full-rate telemetry, as `beamctl run --telemetry FILE` "
+                        "records one run, into DIR (default: the report folder): telemetry_<mode>.btl, "
+                        "about 40 MB a run with the default scenario")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     p.add_argument("--engine", choices=("auto", "loop", "kernel"), default="auto",
                    help="how the runs are simulated: the compiled kernel for the uneventful cycles "
@@ -95,14 +96,17 @@ def run(args: argparse.Namespace) -> int:
     if args.live is not None:
         check_socket_path(args.live, "--live")
     out = check_dir(args.out, "--out")
-    check_engine(args.engine, args.telemetry or args.live is not None)
+    recording = None
+    if args.telemetry is not None:          # --telemetry alone: into the report folder
+        recording = check_dir(args.telemetry, "--telemetry") if args.telemetry else out
+    check_engine(args.engine, recording is not None or args.live is not None)
     tables = experiment_tables(cfg, settings)
     # The folder holds one experiment's report: a previous one's figures and summaries go
     # now, so that a run cut short leaves nothing that could be taken for its result.
     remove_report(out)
     start = time.monotonic()
     with ProgressBar("experiment") as bar, stop_on_signals() as stop:
-        summary, traces = run_experiment(cfg, settings, tables, out if args.telemetry else None,
+        summary, traces = run_experiment(cfg, settings, tables, recording,
                                          progress=bar, stop=stop, engine=args.engine, live=args.live)
         bar.close()
     summary["wall_time_s"] = time.monotonic() - start
@@ -120,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
         print(table)
         print(f"\n{sum(t.plant_s for t in traces.values()):.0f} s of plant time in "
               f"{summary['wall_time_s']:.1f} s ({summary['sim_realtime_factor']:.1f} x real time)")
-        recorded = ", telemetry_<mode>.btl" if args.telemetry else ""
+        recorded = "" if recording is None else (", telemetry_<mode>.btl" if recording == out
+                                                 else f"; telemetry_<mode>.btl in {recording}/")
         print(f"report: {out}/ ({', '.join(p.name for p in figures)}, summary.txt, summary.json{recorded})")
     return 0

@@ -233,3 +233,13 @@ def test_a_model_fit_error_names_the_command_as_typed(tmp_path, monkeypatch, cap
     monkeypatch.chdir(tmp_path)
     assert main(["model", "fit", "missing.npz", "--out", "fitted.yaml"]) == 2
     _one_line_error(capsys, "beamctl model fit: error:", "missing.npz")
+
+
+def test_experiment_telemetry_takes_the_folder_it_records_into(tmp_path, capsys):
+    """As `run --telemetry FILE` names where its recording goes, `experiment --telemetry DIR`
+    does (alone, the report folder); a file there is refused before any run."""
+    (tmp_path / "a-file").write_text("")
+    argv = ["experiment", "--out", str(tmp_path / "report"), "--telemetry", str(tmp_path / "a-file")]
+    assert main(argv) == 2
+    _one_line_error(capsys, "beamctl experiment: error:", "--telemetry", "not a directory")
+    assert not (tmp_path / "report").exists() or not any((tmp_path / "report").iterdir())
