@@ -65,6 +65,9 @@ def add_parser(sub) -> None:
                         "0:3500:500)")
     b.add_argument("--mode", choices=("interpolate", "paper"), default="interpolate",
                    help="schedule: linear interpolation, or the paper's stepwise switching (integral-lqr)")
+    b.add_argument("--json", action="store_true",
+                   help="print what was built (grid, check, file, the robust check) as one JSON object; the "
+                        "build's lines go to stderr")
     b.add_argument("--no-robust", action="store_true",
                    help="skip the robust check of the built table (minutes) and its worst case")
     b.add_argument("--box", metavar="FILE", help="the uncertainty box of the robust check (YAML, a box: "
@@ -124,6 +127,22 @@ def _load(file: str | None, action: str) -> GainTable:
 
 
 def run_build(args: argparse.Namespace) -> int:
+    status = _build(args)
+    if args.json:
+        print(json.dumps(args.build_report, indent=1))
+    return status
+
+
+def _build(args: argparse.Namespace) -> int:
+    """The build; its lines go to stdout, or with --json to stderr (and ``args.build_report``
+    holds what the JSON says)."""
+    out_stream = sys.stderr if args.json else sys.stdout
+
+    def say(text: str) -> None:
+        print(text, file=out_stream, flush=True)
+
+    report: dict = {}
+    args.build_report = report
     grid = parse_grid(args.grid) if args.grid else None
     params = load_model_file(args.config)
     out = check_file(args.out, "--out")
@@ -142,35 +161,42 @@ def run_build(args: argparse.Namespace) -> int:
             table = build_table(model, grid, mode=args.mode, force=args.force, progress=bar)
         elapsed = bar.close()
     worst = max(table.checks, key=lambda c: c.spectral_radius)
-    print(f"{len(table.loads_n)} grid points {table.loads_n[0]:g}..{table.loads_n[-1]:g} N, "
+    report.update(file=str(out), design=table.design.kind,
+                  loads_N=[float(table.loads_n[0]), float(table.loads_n[-1])], grid_points=len(table.loads_n),
+                  checks=len(table.checks), all_stable=table.all_stable,
+                  largest_spectral_radius=worst.spectral_radius, at_N=worst.load_n, written=False,
+                  robust=None)
+    say(f"{len(table.loads_n)} grid points {table.loads_n[0]:g}..{table.loads_n[-1]:g} N, "
           f"mode {table.schedule.mode}, {len(table.checks)} closed-loop checks in {elapsed:.1f} s")
-    print(f"largest spectral radius {worst.spectral_radius:.6f} at {worst.load_n:g} N; "
+    say(f"largest spectral radius {worst.spectral_radius:.6f} at {worst.load_n:g} N; "
           f"least damping {min(c.min_damping for c in table.checks):.4g}")
     if not table.all_stable:
         unstable = [c.load_n for c in table.checks if not c.stable]
         more = " ..." if len(unstable) > 8 else ""
-        print(f"UNSTABLE at {len(unstable)} check points: {unstable[:8]}{more}")
+        say(f"UNSTABLE at {len(unstable)} check points: {unstable[:8]}{more}")
         if not args.force:
-            print("table not written (use --force to write it, marked as forced)")
+            say("table not written (use --force to write it, marked as forced)")
             return 1
     with replacing(out) as temp:      # the service never reads half a table
         write_table(table, temp)
-    print(f"wrote {out}{' (forced: unstable points)' if table.forced and not table.all_stable else ''}")
+    report["written"] = True
+    say(f"wrote {out}{' (forced: unstable points)' if table.forced and not table.all_stable else ''}")
     if args.no_robust:
-        print("robust check skipped (--no-robust): how far the table holds a rig that differs from the "
+        say("robust check skipped (--no-robust): how far the table holds a rig that differs from the "
               f"model is unknown; run `beamctl gains check --robust {out}`")
     elif table.all_stable:
         print(f"robust check: searching {args.box or 'box B'} for its worst rig ({box.budget} rigs at "
               "most; box B takes 2 to 4 minutes on 2 cores; --no-robust skips it)", file=sys.stderr,
               flush=True)
         result = _robust(table, box, None)
-        print(_robust_line(result))
+        say(_robust_line(result))
         table = replace(table, robust=table_record(result, args.box or "box B"))
+        report["robust"] = table.robust
         with replacing(out) as temp:      # the table keeps its robust check (`gains show`, `config check`)
             write_table(table, temp)
-        print(f"recorded the robust check in {out}")
+        say(f"recorded the robust check in {out}")
         if result.worst_ratio < 1.0:
-            print("NOT HELD: a rig of the box goes unstable below its own critical load (exit status 1)")
+            say("NOT HELD: a rig of the box goes unstable below its own critical load (exit status 1)")
             return 1
     return 0
 

@@ -207,3 +207,14 @@ def test_show_answers_in_json(capsys):
     shown = json.loads(capsys.readouterr().out)
     assert shown["design"] == "lqg" and shown["all_stable"] and shown["content_matches"], shown.keys()
     assert len(shown["gains_A_y"]["D"]) == len(shown["loads_N"]) and "unit" in shown["gains_A_y"]
+
+
+def test_build_answers_in_json_with_its_lines_on_stderr(tmp_path, capsys):
+    out = tmp_path / "g.yaml"
+    assert main(["gains", "build", "--design", "integral-lqr", "--grid", "0:4000:500", "--no-robust",
+                 "--out", str(out), "--json"]) == 0
+    captured = capsys.readouterr()
+    built = json.loads(captured.out)
+    assert built["written"] and built["file"] == str(out), built
+    assert built["all_stable"] and built["grid_points"] == 9, built
+    assert "wrote" in captured.err and "robust check skipped" in captured.err
