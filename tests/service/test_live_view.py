@@ -118,7 +118,7 @@ def _page_of_a_service(tmp_path, *service_flags: str):
         # the three start side by side (a second or two each); what the service sends before the
         # monitor listens is dropped and counted, as whenever no viewer listens
         service = _service(tmp_path, tmp_path / "run.btl", None, *service_flags)
-        browser = HeadlessChromium(BROWSER)
+        browser = HeadlessChromium(BROWSER, width=1400, height=900)     # a lab PC's window
         browser.open(_url_of(monitor))
         yield service, browser
     finally:
@@ -141,6 +141,12 @@ def test_the_page_s_buttons_command_the_service_and_the_page_shows_its_values_as
         armed = _page_when(browser, lambda v: v["state"] == "ARMED" and v["connection"] == "live",
                            "ARMED (--hold), live")
         started_with = browser.evaluate("document.getElementById('run-label').textContent")
+        layout = browser.evaluate(
+            "({width: document.documentElement.scrollWidth, window: window.innerWidth,"
+            " height: window.innerHeight,"
+            " start: document.getElementById('button-start').getBoundingClientRect().bottom,"
+            " voltages: document.getElementById('chart-voltages').getBoundingClientRect().bottom,"
+            " scheduled: document.getElementById('value-scheduled').textContent})")
         browser.evaluate(f"document.getElementById('gains-table').value = {json.dumps(str(other_table))};"
                          "document.getElementById('button-gains').click()")
         swapped = _page_when(browser, lambda v: "gains: done" in v["reply"] or "refused" in v["reply"],
@@ -159,6 +165,11 @@ def test_the_page_s_buttons_command_the_service_and_the_page_shows_its_values_as
         stopped = _page_when(browser, lambda v: v["state"] == "STOPPED", "STOPPED after Stop")
         out, err = service.communicate(timeout=DEADLINE_S)
     assert armed["fault"].startswith("NONE"), armed
+    # at 1400 x 900 the page fits the window's width, and the buttons and the voltages are in view;
+    # ARMED, the schedule has no point yet (it said "0.0 N")
+    assert layout["width"] <= layout["window"], layout
+    assert layout["start"] <= layout["height"] and layout["voltages"] <= layout["height"], layout
+    assert layout["scheduled"].startswith("none yet: ARMED"), layout
     assert str(paper_table_path()) in started_with, started_with
     assert "gains: done" in swapped["reply"], swapped["reply"]
     assert title.endswith(f"gain table {other_table}"), (
