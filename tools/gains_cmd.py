@@ -186,8 +186,8 @@ def _build(args: argparse.Namespace) -> int:
               f"model is unknown; run `beamctl gains check --robust {out}`")
     elif table.all_stable:
         print(f"robust check: searching {args.box or 'box B'} for its worst rig ({box.budget} rigs at "
-              "most; box B takes 2 to 4 minutes on 2 cores; --no-robust skips it)", file=sys.stderr,
-              flush=True)
+              "most: minutes, 2 to 4 on 2 idle cores, the time left shown below; --no-robust skips it)",
+              file=sys.stderr, flush=True)
         result = _robust(table, box, None)
         say(_robust_line(result))
         table = replace(table, robust=table_record(result, args.box or "box B"))
