@@ -516,9 +516,9 @@ def _first(mask: np.ndarray) -> int | None:
 
 
 def voltages_figure(summary: dict, traces: dict):
-    """Per controlled run, one panel: the highest and the lowest of the six stack voltages at
-    each load (the band between them), with the limits (panels of their own: two translucent
-    bands on one axis mixed into a colour no legend named)."""
+    """Per controlled run, one panel: each of the six stack voltages versus load (support A
+    solid, B dashed) over the band between the lowest and the highest stack, with the limits
+    (panels of their own: two translucent bands on one axis mixed into a colour no legend named)."""
     plt = _pyplot()
     modes = [m for m in traces if m != "uncontrolled"]
     fig, axes = plt.subplots(len(modes) or 1, 1, figsize=(8, 2.2 + 2.3 * max(len(modes), 1)), sharex=True,
@@ -526,16 +526,24 @@ def voltages_figure(summary: dict, traces: dict):
     for ax, mode in zip(axes[:, 0], modes, strict=False):
         a = traces[mode].arrays()
         color, label, _, _ = _RUN_STYLE[mode]
-        ax.fill_between(a["load_n"], a["v_min"], a["v_max"], color=color, alpha=0.25, lw=0,
+        ax.fill_between(a["load_n"], a["v_min"], a["v_max"], color=color, alpha=0.15, lw=0,
                         label="between the lowest and the highest stack")
-        ax.plot(a["load_n"], a["v_max"], color=color, lw=0.9, label="highest stack")
-        ax.plot(a["load_n"], a["v_min"], color=color, lw=0.9, ls="--", label="lowest stack")
+        stacks = np.asarray(a.get("voltages", np.zeros((0, 7))), dtype=float)
+        if stacks.ndim == 2 and stacks.shape[0] > 1 and stacks.shape[1] == 7:
+            # each stack (sampled every 500 cycles): support A solid, B dashed, by stack colour
+            for j in range(6):
+                stack_color = _STACK_COLORS[j % 3]
+                ax.plot(stacks[:, 0], stacks[:, 1 + j], color=stack_color, lw=0.9, ls="-" if j < 3 else "--",
+                        label=f"{'ab'[j // 3]}{j % 3 + 1}")
+        else:
+            ax.plot(a["load_n"], a["v_max"], color=color, lw=0.9, label="highest stack")
+            ax.plot(a["load_n"], a["v_min"], color=color, lw=0.9, ls="--", label="lowest stack")
         for limit in (0.0, 150.0):
             ax.axhline(limit, color="tab:red", lw=0.8, ls=":")
         ax.set_ylim(-5, 155)
         ax.set_ylabel("stack voltage in V")
         ax.set_title(label, fontsize=9)
-        ax.legend(fontsize=7, loc="lower left")
+        ax.legend(fontsize=7, loc="lower left", ncol=4)
         ax.grid(True, alpha=0.3)
     axes[-1, 0].set_xlabel("axial load Fx in N")
     fig.suptitle("Piezo stack voltages versus load (limits 0 and 150 V, dotted red)", fontsize=11)
@@ -556,6 +564,7 @@ def experiment_figures(summary: dict, traces: dict, out_dir: Path) -> list[Path]
 SYMLOG_LINEAR_M = 10e-6      # the deflection axis over time is linear within 10 µm of zero
 CRITICAL_LOAD_SHOWN = 0.8    # a run's load drawn against the critical load once it comes this close
 # stacks 1, 2, 3 of a support: a colour and a line style each, the same at both supports
+_STACK_COLORS = ("tab:green", "tab:purple", "tab:brown")      # stacks 1, 2, 3 of a support
 _STACK_STYLE = (("tab:blue", "-"), ("tab:red", "--"), ("tab:green", "-."))
 
 

@@ -233,3 +233,16 @@ def test_magnitudes_say_what_sign_they_hide(close):
     assert labels[0] == "|Ki y1| (negative)", labels
     assert plots._sign_note(np.array([0.0, 100.0, 200.0]), np.array([-1.0, -0.5, 0.5])) == \
         "changes sign near 150 N"
+
+
+def test_the_voltages_figure_draws_each_stack_in_a_panel_per_controlled_run(experiment, close):
+    """Before: the highest and the lowest stack only, two runs' translucent bands on one axis
+    mixed into a colour no legend named."""
+    summary, traces, _ = experiment
+    fig = plots.voltages_figure(summary, traces)
+    close(fig)
+    controlled = [m for m in traces if m != "uncontrolled"]
+    assert len(fig.axes) == len(controlled)
+    for ax in fig.axes:
+        labels = [line.get_label() for line in ax.get_lines() if not line.get_label().startswith("_")]
+        assert labels[:6] == ["a1", "a2", "a3", "b1", "b2", "b3"], labels
