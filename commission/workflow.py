@@ -317,6 +317,7 @@ class Commission:
         own = summary["plant_critical_load_N"]
         let_go = summary["controlled"]["load_at_1.0mm_N"]
         summary["commission"] = {"own_critical_load_N": own, "let_go_at_N": let_go,
+                                 "fault": summary["controlled"].get("fault", ""),
                                  "max_load_N": float(loads.max()) if loads.size else None,
                                  "held_past_own_critical_load": bool(
                                      loads.size and loads.max() > own and (let_go is None or let_go > own))}
@@ -352,7 +353,15 @@ def held_text(c: dict[str, Any]) -> str:
     """What the commissioned table held in the simulated experiment, in words."""
     own = f"the rig's own Fx,cr {c['own_critical_load_N']:.0f} N"
     if c["let_go_at_N"] is not None:
-        return f"{own}; the beam passed 1 mm at {c['let_go_at_N']:.0f} N"
+        text = f"{own}; the beam passed 1 mm at {c['let_go_at_N']:.0f} N"
+        if str(c.get("fault", "")).startswith("PERSISTENT_SATURATION"):
+            text += (" after the stacks stayed at their limits (PERSISTENT_SATURATION): near its critical "
+                     "load the beam's own stiffness is nearly gone and the stacks carry the moment of the "
+                     "rig's eccentric load and bow, so their force, not the gains, is the limit; a "
+                     "straighter load line holds longer")
+        elif c.get("fault"):
+            text += f" ({c['fault']})"
+        return text
     top = c["max_load_N"]
     return f"{own}; held below 1 mm to the ramp's end, {top:.0f} N" if top is not None else own
 

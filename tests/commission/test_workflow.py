@@ -156,3 +156,13 @@ def test_the_default_grid_ends_where_a_design_can_hold_the_fitted_model():
     soft = default_grid(3146.4)
     assert soft[0] == 0.0 and soft[-1] == 3700.0 and np.allclose(np.diff(soft), 100.0), soft
     assert default_grid(3500.0)[-1] == 4000.0
+
+
+def test_a_beam_lost_because_the_stacks_ran_out_is_said_so():
+    from beamctl.commission.workflow import held_text
+
+    text = held_text({"own_critical_load_N": 3230.0, "let_go_at_N": 3134.0, "max_load_N": 3136.0,
+                      "fault": "PERSISTENT_SATURATION: the stack voltages stayed saturated for too long"})
+    assert "3134 N" in text and "their force, not the gains, is the limit" in text, text
+    held = held_text({"own_critical_load_N": 3214.0, "let_go_at_N": None, "max_load_N": 3900.0, "fault": ""})
+    assert held.endswith("held below 1 mm to the ramp's end, 3900 N"), held
