@@ -43,7 +43,7 @@ _SCHEMA = {
         "youngs_modulus": plausible(1e9, 1e12, "N/m^2"),
     },
     "supports": {
-        "rotational_stiffness": plausible(1e-3, 1e7, "N m/rad"),
+        "rotational_stiffness": plausible(1e-3, 1e9, "N m/rad"),      # up to a clamped end
         "lateral_stiffness": plausible(1e2, 1e11, "N/m"),
         "actuator_stiffness": plausible(1e2, 1e11, "N/m"),
     },

@@ -106,9 +106,10 @@ _SCHEMA = {
               "seed": integer(low=0)},
 }
 
-# a simulated beam rests on end stops this far from straight (m): beyond the strain limit's reach
-# (about 13 mm at the shipped 0.5 x the proportional limit), well short of the beam's own
-END_STOP_M = 0.02
+# a simulated beam rests on end stops this fraction of its length from straight: for the paper's
+# beam 20 mm, beyond the strain limit's reach (about 13 mm at the shipped 0.5 x the proportional
+# limit); a rig whose strain limit lies beyond its stops rests on them without a strain fault
+END_STOP_FRACTION = 0.05
 
 # discretisations kept per process, over all plants: two rigs' whole 260..4000 N ramps at 1 N
 # cells (a 48-state plant's cell is 22 kB: 88 MB at most)
@@ -340,6 +341,8 @@ class Plant:
         quarter = [nodes[round(f * (len(nodes) - 1))] for f in (0.25, 0.5, 0.75)]
         self._stop_rows = np.vstack([basis[[dof(k, PLANE_DOFS[p][0]) for k in quarter]] for p in ("y", "z")])
         self._stop_out = np.zeros(self._stop_rows.shape[0])
+        self.end_stop_m = END_STOP_FRACTION * model.params.beam.length
+        self._stop_check = self.end_stop_m / math.sqrt(2.0)
         self._velocity = slice(self._q.stop, self._q.stop + n)
         self.on_stops_since: float | None = None     # the time the beam first came to rest on its stops
 
@@ -458,6 +461,8 @@ class Plant:
         k = self._k_elastic - self.axial_load * self._k_geometric
         self._state[:] = 0.0
         self._state[self._q] = np.linalg.solve(k, self._input[:, 4] * self.axial_load)
+        np.dot(self._stop_rows, self._state[self._q], out=self._stop_out)
+        self._rest_on_stops()            # a static shape past the stops (loaded near Fx,cr) rests on them
         if self._settle is not None:
             aa = self._aa
             self._state[aa] = self._settle @ self._state[:aa.start] + self._settle_load * self.axial_load
@@ -480,7 +485,8 @@ class Plant:
         self._next += self._forced
         self._state, self._next = self._next, self._state
         np.dot(self._stop_rows, self._state[self._q], out=self._stop_out)
-        if self._stop_out.max() > END_STOP_M or -self._stop_out.min() > END_STOP_M:
+        # a component past the stop's reach / sqrt(2): the radius may be past it (checked there)
+        if self._stop_out.max() > self._stop_check or -self._stop_out.min() > self._stop_check:
             self._rest_on_stops()
         self.time += self.period_s
         self.axial_load = self.config.load.load_at(self.time)
@@ -492,8 +498,9 @@ class Plant:
         a beam past its critical load with nobody holding it grows without bound."""
         n = len(self._stop_out) // 2
         reach = float(np.hypot(self._stop_out[:n], self._stop_out[n:]).max())
-        if reach > END_STOP_M:
-            self._state[self._q] *= END_STOP_M / reach
+        if not reach > self.end_stop_m:
+            return
+        self._state[self._q] *= self.end_stop_m / reach
         self._state[self._velocity] = 0.0
         if self.on_stops_since is None:
             self.on_stops_since = self.time

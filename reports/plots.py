@@ -344,10 +344,11 @@ def figure_7a(runs: Sequence[RunCurves], critical_load_n: float | None = None, p
     if not any(_held_top(r) < FLAT_FRACTION * scale_m for r in magnify):
         magnify = []
     loads = np.concatenate([r.load_n for r in runs]) if runs else np.zeros(1)
-    low = float(np.nanmin(loads))
+    finite = loads[np.isfinite(loads)]
+    low = float(finite.min()) if finite.size else 0.0
     # a run that starts far up the load (a recording of the lab's 2800 to 3300 N) is drawn where it ran
     x_low = 0.0 if low < ZOOM_FROM_N else max(0.0, low - 100.0)
-    x_high = max(float(np.nanmax(loads)) + 100.0, (critical_load_n or 0.0) + 300.0)
+    x_high = max((float(finite.max()) if finite.size else 0.0) + 100.0, (critical_load_n or 0.0) + 300.0)
     mosaic = [["y", "z"], ["m", "h"]] if magnify else [["y", "z"], ["m", "m"]]
     fig, named = plt.subplot_mosaic(mosaic, figsize=(11, 7.8), layout="constrained")
     ax_y, ax_z, ax_m = named["y"], named["z"], named["m"]
@@ -383,6 +384,7 @@ def figure_7a(runs: Sequence[RunCurves], critical_load_n: float | None = None, p
     if magnify:
         held_top = max(_held_top(r) for r in magnify)
         held_loads = np.concatenate([r.load_n[_held(r)] for r in magnify])
+        held_loads = held_loads[np.isfinite(held_loads)]
         handles = []
         for r in magnify:
             held = _held(r)
@@ -398,8 +400,10 @@ def figure_7a(runs: Sequence[RunCurves], critical_load_n: float | None = None, p
                 handles.append(plt.Line2D([], [], color=r.color, ls=style, lw=width, label=f"{name}: {what}"))
         ax_h.set_ylim(0.0, 1.2 * held_top * 1e6)
         # where the story is: from a little below the critical load to where the stacks ran out
-        zoom_low = min(0.9 * critical_load_n, float(held_loads.max()) - 200.0) if critical_load_n else x_low
-        ax_h.set_xlim(max(x_low, zoom_low), float(held_loads.max()) + 50.0)
+        if held_loads.size:
+            top_held = float(held_loads.max())
+            zoom_low = min(0.9 * critical_load_n, top_held - 200.0) if critical_load_n else x_low
+            ax_h.set_xlim(max(x_low, zoom_low), top_held + 50.0)
         ax_h.legend(handles=handles, fontsize=6.5, loc="best")
         ax_h.set_title("(d) controlled runs magnified near Fx,cr, until their stacks reach a limit",
                        fontsize=10)

@@ -11,7 +11,6 @@ folder is checked but nothing is written.
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -22,7 +21,7 @@ from beamctl.gains.robust import robust_text
 from beamctl.hal.base import HalError
 from beamctl.hal.can_backend import socketcan_problem
 from beamctl.rt.controller import Controller
-from beamctl.service.control import ControlError, check_socket_path, default_socket_path, request
+from beamctl.service.control import ControlError, default_socket_path, socket_place
 from beamctl.service.setup import build_hal, check_voltage_range, load_gain_table, load_service_config
 
 TELEMETRY_DEFAULT = "beamctl-%Y%m%d-%H%M%S.btl"
@@ -86,11 +85,11 @@ def _table(cfg, out: ConfigCheck):
         out.refusals.append(str(exc))
         out.items.append(("gain table", f"{path}: refused"))
         return None
-    sha = hashlib.sha256(path.read_bytes()).hexdigest()
+    sha = table.sha256              # the content hash `beamctl run` records and `ctl status` reports
     d = table.design
     loads = table.loads_n
     out.items.append(("gain table", f"{path.resolve()}"))
-    out.items.append(("table sha256", sha))
+    out.items.append(("table sha256", f"{sha} (its content's, as `beamctl ctl status` reports it)"))
     out.items.append(("design", f"{d.kind} at {d.sample_rate_hz:g} Hz, {len(loads)} loads "
                                 f"{loads[0]:g}..{loads[-1]:g} N, schedule {table.schedule.mode}; "
                                 f"assumes {d.io.describe()}"))
@@ -140,22 +139,12 @@ def _hal(cfg, table, out: ConfigCheck) -> None:
 def _socket(cfg, out: ConfigCheck) -> None:
     path = Path(cfg.control_socket) if cfg.control_socket else default_socket_path()
     try:
-        check_socket_path(path)
+        stale = socket_place(path, make_directory=False)       # the service's own checks, nothing made
     except ControlError as exc:
         out.refusals.append(str(exc))
+        out.items.append(("control socket", f"{path} (refused)"))
         return
-    state = "free"
-    if path.exists():
-        try:
-            request(path, {"command": "status"}, timeout_s=1.0)
-        except ControlError:
-            state = "a socket left from an earlier run (the service replaces it)"
-        else:
-            state = "IN USE"
-            out.refusals.append(f"control socket {path}: a service answers there (stop it, or give this "
-                                "one control.socket of its own)")
-    elif not path.parent.exists() and not path.parent.parent.is_dir():
-        out.refusals.append(f"control socket {path}: its folder {path.parent} cannot be made")
+    state = "a socket left from an earlier run (the service replaces it)" if stale else "free"
     out.items.append(("control socket", f"{path} ({state})"))
     out.data["control_socket"] = str(path)
 

@@ -216,23 +216,46 @@ def _answers(path: Path) -> bool:
     return True
 
 
+def _directory_can_be_made(directory: Path) -> None:
+    """``directory`` is one this user can put a socket in, or make (nothing is made)."""
+    d = directory
+    while not d.exists() and d != d.parent:
+        d = d.parent
+    if not d.is_dir():
+        raise ControlError(f"control socket directory {directory}: {d} is not a directory")
+    if not os.access(d, os.W_OK | os.X_OK):
+        raise ControlError(f"control socket directory {directory}: {d} is not writable by this user")
+
+
+def socket_place(path: str | Path, make_directory: bool = True) -> bool:
+    """What ``bind_socket`` checks before it binds: the path can hold a socket address, its
+    directory is there (made with ``make_directory``; else only checked), nothing but a socket
+    file is at the path and no service answers there. Returns whether a socket file left by a
+    service that has ended is there (bind replaces it). ControlError otherwise."""
+    p = check_socket_path(path)
+    if make_directory:
+        prepare_socket_directory(p.parent)
+    else:
+        _directory_can_be_made(p.parent)
+    try:
+        st = os.lstat(p)
+    except FileNotFoundError:
+        return False
+    except OSError as exc:
+        raise ControlError(f"control socket {p}: {exc.strerror or exc}") from None
+    if not stat.S_ISSOCK(st.st_mode):
+        raise ControlError(f"control socket {p}: the path exists and is not a socket")
+    if _answers(p):
+        raise ControlError(f"control socket {p}: another service is running there (stop it, or "
+                           f"give this one its own --control-socket)")
+    return True
+
+
 def bind_socket(path: str | Path) -> socket.socket:
     """A listening socket at ``path``, its file 0660. A socket file left by a service that has
     ended is replaced; one a service answers at is refused, as is any other file."""
     p = check_socket_path(path)
-    prepare_socket_directory(p.parent)
-    try:
-        st = os.lstat(p)
-    except FileNotFoundError:
-        st = None
-    except OSError as exc:
-        raise ControlError(f"control socket {p}: {exc.strerror or exc}") from None
-    if st is not None:
-        if not stat.S_ISSOCK(st.st_mode):
-            raise ControlError(f"control socket {p}: the path exists and is not a socket")
-        if _answers(p):
-            raise ControlError(f"control socket {p}: another service is running there (stop it, or "
-                               f"give this one its own --control-socket)")
+    if socket_place(p):
         p.unlink(missing_ok=True)
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:

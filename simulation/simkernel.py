@@ -16,8 +16,9 @@ telemetry runs in the loop). It returns for what needs Python: a new discretisat
 (a new load cell), a new block of measurement noise, the monitor's progress and end check.
 
 Not kept in kernel cycles: the loop's per-stage timing (a simulated sample has none worth
-measuring) and the plant's end stops (20 mm: the monitor ends a run at its deflection limit, and
-the supervisor faults on the strain limit, long before; the loop's own cycles have them).
+measuring) and the plant's end stops (5 % of the beam's length, 20 mm for the paper's: the
+monitor ends a run at its deflection limit, and for the paper's beam the supervisor faults on the
+strain limit, long before; the loop's own cycles have them).
 ``Accelerator`` is the ``ControlLoop`` hook: offered each cycle, it runs as many
 kernel cycles as it can and returns how many. Numba keys a disk cache on this file alone; the
 kernel's cache is dropped when the engine it calls has changed (``kernel``).

@@ -183,7 +183,7 @@ def _build(args: argparse.Namespace) -> int:
     say(f"wrote {out}{' (forced: unstable points)' if table.forced and not table.all_stable else ''}")
     if args.no_robust:
         say("robust check skipped (--no-robust): how far the table holds a rig that differs from the "
-              f"model is unknown; run `beamctl gains check --robust {out}`")
+              f"model is unknown; run `beamctl gains check --robust --record {out}`")
     elif table.all_stable:
         print(f"robust check: searching {args.box or 'box B'} for its worst rig ({box.budget} rigs at "
               "most: minutes, 2 to 4 on 2 idle cores, the time left shown below; --no-robust skips it)",
@@ -242,7 +242,8 @@ def run_check(args: argparse.Namespace) -> int:
             raise ConfigError(flag, value, "--robust as well (it sets how the robust check runs)")
     if args.record and not args.robust:
         raise ConfigError("--record", True, "--robust as well (it records the robust check's result)")
-    if args.record and not args.file:
+    shipped = {default_table_path().resolve(), paper_table_path().resolve()}
+    if args.record and (not args.file or any(Path(f).resolve() in shipped for f in args.file)):
         raise ConfigError("--record", True, "a table file of your own (the shipped tables are not changed)")
     if args.worst_rig and len(files) > 1:
         raise ConfigError("--worst-rig", args.worst_rig, "one gain table (the scenario runs that table)")
@@ -389,8 +390,7 @@ def run_show(args: argparse.Namespace) -> int:
             "io": d.io.to_dict(), "schedule": s.mode, "loads_N": [float(x) for x in table.loads_n],
             "compensator_states": comp.n_states, "all_stable": table.all_stable, "forced": table.forced,
             "robust": table.robust, "plot": written,
-            "gains_A_y": {"unit": "N per unit strain (D, the feedthrough) and N per unit strain per "
-                                  "sample (Ki)",
+            "gains_A_y": {"unit": "D in N per unit strain, Ki in N per unit of xi (the summed T H y)",
                           "D": comp.d[:, 0, :].tolist(), "Ki": comp.ki[:, 0, :].tolist()}}, indent=1))
         return 0
     print(f"gain table: {args.file or default_table_path()}")

@@ -64,8 +64,8 @@ def run_export(args: argparse.Namespace) -> int:
     if out.resolve() == Path(args.file).resolve():
         raise OutputPathError(what, out, "it is the telemetry file being exported")
     if out.exists() and not args.force:
-        raise OutputPathError(what, out, "a file is there already (an earlier export?): give another "
-                                         "--out, or --force to replace it")
+        raise ConfigError(what, str(out), "a file that is not there yet: one is there already, maybe an "
+                                          "earlier export (give another --out, or --force to replace it)")
     recordings.check_format(args.to)                  # refused before any output exists
     with TelemetryReader(args.file) as reader:
         header = reader.header

@@ -246,3 +246,18 @@ def test_the_voltages_figure_draws_each_stack_in_a_panel_per_controlled_run(expe
     for ax in fig.axes:
         labels = [line.get_label() for line in ax.get_lines() if not line.get_label().startswith("_")]
         assert labels[:6] == ["a1", "a2", "a3", "b1", "b2", "b3"], labels
+
+
+def test_figure_7a_draws_a_run_with_a_load_cell_gap(close):
+    """A NaN load-cell reading inside the held part made the magnified panel's axis NaN (a
+    ValueError from matplotlib, a traceback from `beamctl report`)."""
+    load = np.linspace(2000.0, 3300.0, 400)
+    load[100] = np.nan
+    run = plots.RunCurves(label="controlled", color="tab:blue", controlled=True, load_n=load,
+                          deflection_y_m=2e-5 + 0 * load, deflection_z_m=1e-5 + 0 * load, held_samples=None)
+    uncontrolled = plots.RunCurves(label="uncontrolled", color="0.3", controlled=False, load_n=load[:300],
+                                   deflection_y_m=np.linspace(1e-4, 1.5e-3, 300),
+                                   deflection_z_m=np.linspace(1e-4, 1.5e-3, 300))
+    fig = plots.figure_7a([uncontrolled, run], 3194.0, paper=False)
+    close(fig)
+    assert all(np.isfinite(ax.get_xlim()).all() for ax in fig.axes)

@@ -1,7 +1,6 @@
 """``beamctl config check``: what a configuration would run, and every reason ``beamctl run``
 would refuse it, found without starting the service (service/check.py)."""
 
-import hashlib
 import json
 from dataclasses import replace
 
@@ -30,7 +29,7 @@ def test_a_runnable_configuration_names_its_table_hash_and_design_and_exits_0(tm
                                              "control": {"socket": str(tmp_path / "ctl.sock")}})
     assert main(["config", "check", config]) == 0
     out = capsys.readouterr().out
-    sha = hashlib.sha256(default_table_path().read_bytes()).hexdigest()     # the file's own bytes
+    sha = load_table(default_table_path()).sha256       # the content hash the service reports
     assert str(default_table_path().resolve()) in out and sha in out, out
     assert "lqg at 6000 Hz" in out and "would start" in out
     assert "robust check" in out and "not recorded" in out, "the shipped table records no robust check"
@@ -65,7 +64,7 @@ def test_a_service_answering_on_the_socket_makes_it_refuse(tmp_path):
         service.join(30.0)
         service.close()
     assert not result.would_start
-    assert any("a service answers there" in r for r in result.refusals), result.refusals
+    assert any("another service is running there" in r for r in result.refusals), result.refusals
 
 
 def test_a_recorded_robust_check_is_kept_in_the_table_and_reported(tmp_path, capsys):
@@ -93,3 +92,14 @@ def test_a_socketcan_interface_this_machine_cannot_open_is_a_reason_with_what_to
     result = check_config(config)
     reasons = [r for r in result.refusals if "hal.can.channel = 'nosuchcan9'" in r]
     assert reasons and ("modprobe" in reasons[0] or "ip link" in reasons[0]), result.refusals
+
+
+
+def test_a_control_socket_path_the_service_could_not_bind_is_a_reason(tmp_path):
+    """A plain file where the socket goes, or a folder under a file: `beamctl run` refuses both."""
+    (tmp_path / "plain").write_text("")
+    for where in (tmp_path / "plain", tmp_path / "plain" / "x.sock"):
+        config = _write(tmp_path / "c.yaml", {"hal": {"backend": "sim"}, "control": {"socket": str(where)}})
+        result = check_config(config)
+        reasons = result.refusals
+        assert any(str(where) in r or "not a directory" in r for r in reasons), (where, reasons)
