@@ -254,10 +254,12 @@ def test_figure_7a_draws_a_run_with_a_load_cell_gap(close):
     load = np.linspace(2000.0, 3300.0, 400)
     load[100] = np.nan
     run = plots.RunCurves(label="controlled", color="tab:blue", controlled=True, load_n=load,
-                          deflection_y_m=2e-5 + 0 * load, deflection_z_m=1e-5 + 0 * load, held_samples=None)
+                          deflection_y_m=np.full(400, 2e-5), deflection_z_m=np.full(400, 1e-5),
+                          held_samples=None)
     uncontrolled = plots.RunCurves(label="uncontrolled", color="0.3", controlled=False, load_n=load[:300],
                                    deflection_y_m=np.linspace(1e-4, 1.5e-3, 300),
                                    deflection_z_m=np.linspace(1e-4, 1.5e-3, 300))
     fig = plots.figure_7a([uncontrolled, run], 3194.0, paper=False)
     close(fig)
+    assert _panel(fig, "(d)").get_visible(), "the magnified panel is drawn"
     assert all(np.isfinite(ax.get_xlim()).all() for ax in fig.axes)
