@@ -8,6 +8,7 @@ import json
 import signal
 import sys
 import threading
+from pathlib import Path
 
 from beamctl.config.schema import ConfigError
 from beamctl.gains.defaults import default_table_path
@@ -133,6 +134,9 @@ def _budget_settings(args: argparse.Namespace) -> tuple[float, float, bool, floa
         can, table_path = HAL_DEFAULTS["can"], default_table_path()
     rate, source = args.rate, "--rate"
     if rate is None:
+        if not Path(table_path).is_file():
+            raise ConfigError("gains.table", str(table_path), "an existing gain table file: its rate is the "
+                              "budget's (or give --rate)", cfg.source if args.config else "")
         rate, source = load_table(table_path, verify=False).design.sample_rate_hz, f"the rate of {table_path}"
     return (rate, args.bitrate or can["bitrate_bit_s"], can["fd"] if args.fd is None else args.fd,
             args.data_bitrate or can["data_bitrate_bit_s"], args.dbc or can["dbc"] or None, source)

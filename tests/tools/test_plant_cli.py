@@ -100,3 +100,12 @@ def test_a_socketcan_bus_that_cannot_be_opened_says_what_to_do(capsys):
     err = capsys.readouterr().err
     assert "cannot open socketcan:nosuchcan9" in err and ("modprobe" in err or "ip link" in err), err
     assert len(err.strip().splitlines()) == 1, err
+
+
+def test_bus_budget_names_the_table_key_when_the_configuration_s_table_is_missing(tmp_path, capsys):
+    config = tmp_path / "lab.yaml"
+    config.write_text(f"gains: {{table: {tmp_path / 'none.yaml'}}}\nhal: {{backend: can}}\n")
+    assert main(["bus-budget", "--config", str(config)]) == 2
+    err = capsys.readouterr().err
+    assert "gains.table" in err and "--rate" in err and len(err.strip().splitlines()) == 1, err
+    assert main(["bus-budget", "--config", str(config), "--rate", "6000"]) == 0
