@@ -37,6 +37,7 @@ from beamctl.common.outputs import check_dir, replacing, write_text
 from beamctl.common.signals import Interrupted
 from beamctl.config.schema import ConfigError, read_yaml
 from beamctl.gains.build import build_lqg_table
+from beamctl.gains.defaults import LQG_GRID_N
 from beamctl.gains.robust import box_from_dict, robust_check, table_record
 from beamctl.gains.table import write_table
 from beamctl.identification.fit_files import fitted_document, load_fitted
@@ -57,8 +58,9 @@ Z_95 = 1.959964
 # FE mesh, not what a real rig has that no simulated one does); a parameter not fitted and what
 # identification cannot see, as box B has it.
 INFLATION = 3.0
-GRID_STEP_N = 100.0
-GRID_TOP_N = 4000.0
+# the shipped LQG's grid (gains/defaults.py) is the default's step and its highest top
+GRID_STEP_N = float(LQG_GRID_N[1] - LQG_GRID_N[0])
+GRID_TOP_N = float(LQG_GRID_N[-1])
 GRID_TOP_FRACTION = 1.2
 FLOOR = {"beam.youngs_modulus": 0.01, "supports.rotational_stiffness": 0.10,
          "supports.lateral_stiffness": 0.10, "supports.actuator_stiffness": 0.10, "damping.ratios": 0.30}

@@ -209,7 +209,7 @@ class CanBackend(HalBase):
             self.bus = self._make_bus(options)
         except (can.CanError, OSError, ValueError, ImportError) as exc:
             raise HalConnectionLost(f"can: cannot open {self.interface}:{self.channel}: {exc}"
-                                    f"{open_hint(self.interface, self.channel, exc)}") from None
+                                    f"{open_hint(self.interface, self.channel)}") from None
         if self.record:
             self._recorder = can.Logger(str(self.record))
         c = self.contract
@@ -455,7 +455,7 @@ def socketcan_problem(channel: str) -> str | None:
     return None
 
 
-def open_hint(interface: str, channel: str, exc: BaseException) -> str:
+def open_hint(interface: str, channel: str) -> str:
     """What to do when opening a bus failed, for the message (empty: nothing to add)."""
     if interface != "socketcan":
         return ""

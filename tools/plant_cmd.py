@@ -84,7 +84,7 @@ def run_plant(args: argparse.Namespace) -> int:
         bus = can.Bus(interface=interface, channel=channel)
     except (can.CanError, OSError, ValueError, ImportError) as exc:
         print(f"beamctl plant: error: cannot open {interface}:{channel}: {exc}"
-              f"{open_hint(interface, channel, exc)}", file=sys.stderr)
+              f"{open_hint(interface, channel)}", file=sys.stderr)
         return 2
     emulator = CanPlantEmulator(bus, plant, plant_geometry(cfg), pace=args.pace,
                                 silence_timeout_s=args.silence_timeout, fallback_ramp_s=args.fallback_ramp,

@@ -31,24 +31,33 @@ SCENARIO = {
 }
 
 
+def _record(path, scenario: dict, label: str, seconds: float):
+    """The scenario's simulated rig under its gain table for ``seconds``, recorded to ``path``
+    (the loop goes on after a fault, as a service's recording does); returns the plant. The
+    plant must not overflow (numpy raises)."""
+    cfg = service_config(scenario, label)
+    table = load_gain_table(cfg)
+    plant = build_plant(cfg, table)
+    hal = SimBackend(plant, plant_geometry(cfg), pace="simulated")
+    controller = Controller(table, cfg.controller)
+    writer = TelemetryWriter.for_controller(path, controller, meta={"config": label}).start()
+    hal.open()
+    try:
+        with np.errstate(all="raise"):
+            ControlLoop(controller, hal, telemetry=writer, stop_on_fault=False,
+                        max_cycles=int(seconds * table.design.sample_rate_hz)).run(acquire_rt=False)
+    finally:
+        hal.close()
+        writer.close()
+    return plant
+
+
 @pytest.fixture(scope="module")
 def faulted(tmp_path_factory):
     """1.5 s of the paper's design holding the simulated beam while the load ramps from 1000 N
     at 400 N/s; the load cell's range ends at 1200 N: a fault after about 0.5 s."""
     path = tmp_path_factory.mktemp("report") / "faulted.btl"
-    cfg = service_config(SCENARIO, "test scenario")
-    table = load_gain_table(cfg)
-    plant = build_plant(cfg, table)
-    hal = SimBackend(plant, plant_geometry(cfg), pace="simulated")
-    controller = Controller(table, cfg.controller)
-    writer = TelemetryWriter.for_controller(path, controller, meta={"config": "test scenario"}).start()
-    hal.open()
-    try:
-        ControlLoop(controller, hal, telemetry=writer, stop_on_fault=False,
-                    max_cycles=int(1.5 * table.design.sample_rate_hz)).run(acquire_rt=False)
-    finally:
-        hal.close()
-        writer.close()
+    _record(path, SCENARIO, "test scenario", 1.5)
     return path
 
 
@@ -261,21 +270,7 @@ def lost(tmp_path_factory):
                 "plant": {"load": {"start": 2000.0, "end": 3600.0, "rate": 500.0},
                           "bow": {"amplitude": 1.61e-4, "angle_deg": 234.0},
                           "noise": {"strain": 2e-7, "load": 2.0, "seed": 3}}}
-    cfg = service_config(scenario, "lost beam")
-    table = load_gain_table(cfg)
-    plant = build_plant(cfg, table)
-    hal = SimBackend(plant, plant_geometry(cfg), pace="simulated")
-    controller = Controller(table, cfg.controller)
-    writer = TelemetryWriter.for_controller(path, controller, meta={"config": "lost beam"}).start()
-    hal.open()
-    try:
-        with np.errstate(all="raise"):          # the plant must not overflow
-            ControlLoop(controller, hal, telemetry=writer, stop_on_fault=False,
-                        max_cycles=int(4.0 * table.design.sample_rate_hz)).run(acquire_rt=False)
-    finally:
-        hal.close()
-        writer.close()
-    return path, plant
+    return path, _record(path, scenario, "lost beam", 4.0)
 
 
 def test_a_lost_beam_is_reported_with_what_was_held_and_where_it_was_lost(lost):
