@@ -5,12 +5,16 @@ one folder, step by step:
    ``beamctl identify``);
 2. ``fit``: the model fitted to them (``fitted.yaml`` as ``beamctl model fit`` writes it, and
    ``fit.json`` with each parameter's 95 % interval);
-3. ``box``: the uncertainty box the design must hold (``box.yaml``, see ``calibrated_box``);
-4. ``gains``: the gain table designed on the fitted model (``gains.yaml``) and, unless left out,
+3. ``stacks``: how much of the stacks' voltage swing holding the beam straight takes up to and
+   past the fitted critical load, predicted from the static strains of the measurements
+   (``stacks.json``, models/authority.py): a rig whose imperfection needs more than the stacks
+   give at Fx,cr is said to be so here, before any gain table is built;
+4. ``box``: the uncertainty box the design must hold (``box.yaml``, see ``calibrated_box``);
+5. ``gains``: the gain table designed on the fitted model (``gains.yaml``) and, unless left out,
    the robust check over the box (``robust.json``);
-5. ``experiment``: the simulated experiment on the rig with that table (``experiment/``); against
+6. ``experiment``: the simulated experiment on the rig with that table (``experiment/``); against
    real hardware the workflow stops before it and says what to do next;
-6. ``report``: ``report.html`` with the figures and numbers of every step.
+7. ``report``: ``report.html`` with the figures and numbers of every step.
 
 Each step writes its files whole (under a temporary name, moved into place when complete) and
 is then recorded in ``commission.json``; run again on the same folder with the same
@@ -43,15 +47,20 @@ from beamctl.gains.table import write_table
 from beamctl.identification.fit_files import fitted_document, load_fitted
 from beamctl.identification.frf_files import read_frf, write_frf
 from beamctl.identification.identify import IdentifySettings, identify
-from beamctl.models import build_model, critical_load
+from beamctl.models import authority, build_model, critical_load
+from beamctl.models.actuators import StackGeometry
+from beamctl.models.authority import finite_point
 from beamctl.models.fit import FitError, FitSettings, fit, resolve_keys
+from beamctl.models.measured import FrfData
+from beamctl.models.params import ModelParameters
 from beamctl.reports import plots
 from beamctl.rt.stop import StopRequest
-from beamctl.service.setup import load_gain_table, service_config
+from beamctl.service.setup import ServiceConfig, load_gain_table, service_config
 from beamctl.simulation.experiment import experiment_config, experiment_tables, run_experiment
 
-STEPS = ("identify", "fit", "box", "gains", "experiment", "report")
+STEPS = ("identify", "fit", "stacks", "box", "gains", "experiment", "report")
 STATE = "commission.json"
+STACKS_FIGURE = "stacks_vs_load.png"
 Z_95 = 1.959964
 # The calibrated box: each fitted parameter within INFLATION x its 95 % interval of the fitted
 # value, and never narrower than FLOOR (the fit's intervals count the measurement's noise and the
@@ -91,7 +100,9 @@ class CommissionError(Exception):
 
 @dataclass(frozen=True)
 class CommissionSettings:
-    loads_n: tuple[float, ...] = (2000.0,)
+    # two loads: the frequency responses at both decorrelate E and kr, and the static strains at
+    # both predict the stacks' use at Fx,cr within about 1 % (one load: about 5 %)
+    loads_n: tuple[float, ...] = (1000.0, 2000.0)
     averages: int = 8
     parameters: tuple[str, ...] = ("E", "kr", "damping", "force_constant")
     robust: bool = True
@@ -207,7 +218,8 @@ class Commission:
             return [p.name for p in self._frf_paths()]
         sim = self.cfg.hal.backend == "sim"
         gains = ["gains.yaml", "robust.json"] if self.settings.robust else ["gains.yaml"]
-        return {"fit": ["fit.json", "fitted.yaml"], "box": ["box.yaml"], "gains": gains,
+        return {"fit": ["fit.json", "fitted.yaml"], "stacks": ["stacks.json"], "box": ["box.yaml"],
+                "gains": gains,
                 "experiment": ["experiment/summary.json"] if sim else [], "report": ["report.html"]}[step]
 
     def _frf_paths(self) -> list[Path]:
@@ -248,6 +260,15 @@ class Commission:
             self.log(f"warning: {warning}")
         return (f"{len(result.keys)} parameters, cost {result.start_cost:.4g} -> {result.cost:.4g}"
                 f"{misfit}{warn}")
+
+    def _stacks(self) -> str:
+        data = [read_frf(p) for p in self._frf_paths()]
+        params, k = load_fitted(str(self.out / "fitted.yaml"))
+        result = stack_authority(self.cfg, params, k, data)
+        write_text(self.out / "stacks.json", json.dumps(result, indent=1) + "\n")
+        for warning in result.get("warnings", []):
+            self.log(f"warning: {warning}")
+        return result["text"]
 
     def _box(self) -> str:
         fitted = json.loads((self.out / "fit.json").read_text())
@@ -318,7 +339,13 @@ class Commission:
         loads = traces["interpolate"].arrays()["load_n"]
         own = summary["plant_critical_load_N"]
         let_go = summary["controlled"]["load_at_1.0mm_N"]
-        summary["commission"] = {"own_critical_load_N": own, "let_go_at_N": let_go,
+        a = cfg.controller.actuators
+        # the stacks' use during the controlled run, against the load (the stacks step's prediction
+        # drawn over it in the report)
+        limits = (a.min_voltage_v, a.max_voltage_v, a.bias_voltage_v, cfg.controller.allocation)
+        use = [[round(float(row[0]), 1), round(authority.voltage_fraction(row[1:], *limits), 4)]
+               for row in traces["interpolate"].voltages]
+        summary["commission"] = {"own_critical_load_N": own, "let_go_at_N": let_go, "stack_use": use,
                                  "fault": summary["controlled"].get("fault", ""),
                                  "max_load_N": float(loads.max()) if loads.size else None,
                                  "held_past_own_critical_load": bool(
@@ -339,6 +366,12 @@ class Commission:
         data = [read_frf(p) for p in self._frf_paths()]
         params, k = load_fitted(str(self.out / "fitted.yaml"))
         plots.figure_5a(data, self.cfg.model, (params, k), self.out / "fig5a_frequency_response.png")
+        stacks = json.loads((self.out / "stacks.json").read_text())
+        if "fraction" in stacks:
+            experiment = self.out / "experiment" / "summary.json"
+            run = json.loads(experiment.read_text()) if experiment.exists() else None
+            plots.stack_use_figure(stacks, run["commission"].get("stack_use") if run else None,
+                                   self.out / STACKS_FIGURE, run["plant_critical_load_N"] if run else None)
         write_text(self.out / "report.html", report_html(self.out))
         return "report.html"
 
@@ -349,6 +382,27 @@ class Commission:
             if path.exists():
                 out[name.split("/")[0].removesuffix(".json")] = json.loads(path.read_text())
         return out
+
+
+def stack_authority(cfg: ServiceConfig, params: ModelParameters, force_constant: float | None,
+                    data: list[FrfData]) -> dict[str, Any]:
+    """The stacks' use over the load range (models/authority.py) from the measurements' static
+    strains, with the fitted model and force constant (the configuration's where not fitted);
+    JSON-ready, with ``text`` the one line the workflow says."""
+    a = cfg.controller.actuators
+    k = force_constant if force_constant is not None else a.force_constant_n_per_v
+    geometry = StackGeometry(force_constant_n_per_v=k, bias_voltage_v=a.bias_voltage_v,
+                             orientation_deg=tuple(a.orientation_deg))
+    points = [finite_point(d.load_n, d.settings["static"], d.label())
+              for d in data if isinstance(d.settings.get("static"), dict)]
+    if not points:
+        return {"text": "not predicted: the measurements carry no static strains", "warnings": []}
+    try:
+        result = authority.predict(build_model(params), points, geometry, a.min_voltage_v, a.max_voltage_v,
+                                   cfg.controller.allocation)
+    except ValueError as exc:
+        return {"text": f"not predicted: {exc}", "warnings": []}
+    return {**result.to_json(), "force_constant_n_per_v": k, "text": result.text()}
 
 
 def held_text(c: dict[str, Any]) -> str:
@@ -395,6 +449,11 @@ def report_html(out: Path) -> str:
         parts.append("<ul>" + "".join(f"<li><strong>warning</strong>: {html.escape(w)}</li>"
                                       for w in fit_data["warnings"]) + "</ul>")
     parts.append("<img src='fig5a_frequency_response.png' alt='measured and fitted frequency responses'>")
+    stacks = json.loads((out / "stacks.json").read_text()) if (out / "stacks.json").exists() else None
+    if stacks is not None:
+        parts.append("<h2>Stack authority</h2><p>" + html.escape(stacks["text"]) + "</p>")
+        if (out / STACKS_FIGURE).exists():
+            parts.append(f"<img src='{STACKS_FIGURE}' alt='the stacks swing used against the load'>")
     parts.append("<h2>Calibrated box</h2><pre>" + html.escape((out / "box.yaml").read_text()) + "</pre>")
     robust = out / "robust.json"
     if robust.exists():

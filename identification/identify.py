@@ -364,6 +364,17 @@ def estimate(rec: Recording, sample_rate_hz: float, band_hz: tuple[float, float]
     return freqs[keep], frf, np.clip(coherence, 0.0, 1.0, where=np.isfinite(coherence), out=coherence)
 
 
+def static_means(rec: Recording) -> dict[str, list[float]]:
+    """The mean strains and stack forces over the averaged periods (the excitation has no mean:
+    what is left is the beam at rest at the measurement's load; models/authority.py uses it)."""
+    p = rec.period_samples
+    per_input = rec.periods * p
+    rows = np.concatenate([np.arange(k * per_input + rec.transient * p, (k + 1) * per_input)
+                           for k in range(len(rec.inputs))])
+    return {"strain": [float(x) for x in rec.strains[rows].mean(axis=0)],
+            "force_n": [float(x) for x in rec.forces[rows].mean(axis=0)]}
+
+
 def identify(cfg: ServiceConfig, table: GainTable, s: IdentifySettings, progress=None,
              stop: StopRequest | None = None) -> tuple[FrfData, dict]:
     """Record and estimate; returns the measurement and a report (timing, counts)."""
@@ -377,7 +388,7 @@ def identify(cfg: ServiceConfig, table: GainTable, s: IdentifySettings, progress
                 "gain_table": str(cfg.table_path), "inputs": input_names(rec.inputs),
                 "period_samples": rec.period_samples, "resolution_hz": rate / rec.period_samples,
                 "bias_voltage_v": a.bias_voltage_v, "orientation_deg": list(a.orientation_deg),
-                "transient_periods": rec.transient}
+                "transient_periods": rec.transient, "static": static_means(rec)}
     data = FrfData(frequencies_hz=freqs, frf=frf, coherence=coherence, load_n=float(np.mean(rec.loads_n)),
                    sample_rate_hz=rate, force_constant_n_per_v=a.force_constant_n_per_v, io=io.to_dict(),
                    settings=settings)

@@ -738,3 +738,35 @@ def figure_5a(measured: list[FrfData], before: ModelParameters,
     if fitted is not None:
         curves.append(("model after the fit", model_response(fitted[0], d, freqs, fitted[1])))
     return frequency_response_measured(d, curves, path)
+
+
+def stack_use_figure(stacks: dict, stack_use: Sequence | None, path: Path,
+                     own_critical_n: float | None = None) -> Path:
+    """The stacks' use against the load (``beamctl commission``): the prediction from the static
+    strains (commission's stacks.json: ``loads_n``, ``fraction``, ``measured``, ``critical_load_n``),
+    the fraction at the measured loads, and where given the controlled run's own use (``stack_use``:
+    (load, fraction) pairs; dynamic, so above the static curve by the control's own motion)."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    fcr = stacks["critical_load_n"]
+    if stack_use:
+        run = np.asarray(stack_use, dtype=float)
+        ax.plot(run[:, 0], 100 * run[:, 1], color="tab:orange", lw=0.9, zorder=3,
+                label="the controlled run on the simulated rig")
+    ax.plot(stacks["loads_n"], 100 * np.asarray(stacks["fraction"]), color="tab:blue", lw=2,
+            label="predicted to hold the beam straight, at rest")
+    measured = np.asarray(stacks["measured"], dtype=float).reshape(-1, 2)
+    ax.plot(measured[:, 0], 100 * measured[:, 1], "o", color="tab:blue", ms=7,
+            label="from the static strains measured")
+    ax.axhline(100, color="tab:red", lw=1.2, label="a stack at its limit")
+    ax.axvline(fcr, color="k", ls="--", lw=1, label=f"fitted Fx,cr {fcr:.0f} N")
+    if own_critical_n is not None:
+        ax.axvline(own_critical_n, color="0.4", ls=":", lw=1,
+                   label=f"the rig's own Fx,cr {own_critical_n:.0f} N")
+    ax.set_xlim(0, max(stacks["loads_n"]))
+    top = max(110.0, 100 * float(np.nanmax(stacks["fraction"])) + 5)
+    ax.set_ylim(0, min(top, 200.0))
+    return _finish(fig, ax, path, xlabel="axial load Fx (N)", ylabel="stacks' swing used (%)",
+                   title=f"Stack authority: {100 * stacks['at_critical']:.0f} % of the swing at the "
+                         "fitted Fx,cr",
+                   legend={"loc": "upper left", "fontsize": 8})

@@ -19,8 +19,11 @@ def add_parser(sub) -> None:
     p = sub.add_parser(
         "commission", help="identify a rig, fit the model, design and check a table, try it on the rig",
         description="Runs, into --out, the steps " + ", ".join(STEPS) + ": frequency responses at --loads "
-                    "(as beamctl identify), the model fitted to them with 95 %% intervals (as beamctl "
-                    "model fit), the uncertainty box calibrated from the fit, the gain table designed on "
+                    "(as beamctl identify), the model fitted to them with 95 % intervals (as beamctl "
+                    "model fit), the stacks' use up to and past the fitted critical load predicted from the "
+                    "measurements' static strains (a rig whose eccentric load or bow needs more than the "
+                    "stacks give is said to be so here), the uncertainty box calibrated from the fit, the "
+                    "gain table designed on "
                     "the fitted model and its robust check over that box, the simulated experiment on the "
                     "rig with that table (a real rig, hal.backend can: stops before it, saying what to do "
                     "next), and report.html. Progress goes to stderr. Ctrl-C ends it with exit 130 and "
@@ -30,8 +33,9 @@ def add_parser(sub) -> None:
                    help="the rig's service configuration (its hal backend; for the simulated rig, its "
                         "plant section is the rig)")
     p.add_argument("--out", metavar="DIR", required=True, help="the commissioning folder")
-    p.add_argument("--loads", default="2000", metavar="N,N,...", help="loads in N to identify at "
-                   "(default 2000)")
+    p.add_argument("--loads", default="1000,2000", metavar="N,N,...", help="loads in N to identify at "
+                   "(default 1000,2000; two or more predict the stacks' use at Fx,cr within about 1 %%, "
+                   "one within about 5 %%)")
     p.add_argument("--averages", type=argtypes.number(low=3, integer=True), default=8, metavar="A",
                    help="averaged excitation periods per input (default 8)")
     p.add_argument("--params", default="E,kr,damping,force_constant", metavar="P,P,...",

@@ -25,7 +25,7 @@ def add_parser(sub) -> None:
                     "per volt scattered about Table 1, a finer FE mesh than the model's, strain and "
                     "load-cell noise, an eccentric load, a bow), identifies each on the simulated backend "
                     "at --loads and fits the measurements together from Table 1. Prints per parameter the "
-                    "largest relative error and how many 95 %% intervals (1.96 standard errors) hold the "
+                    "largest relative error and how many 95 % intervals (1.96 standard errors) hold the "
                     "rig's own value. --scatter-supports also scatters kl and kp: the strains see only "
                     "the support's effective rotational stiffness, so fit them too (--params "
                     "E,kr,kl,kp,damping,force_constant) and read kr's wider interval.")

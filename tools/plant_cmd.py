@@ -57,7 +57,7 @@ def add_parser(sub) -> None:
     b = sub.add_parser(
         "bus-budget", help="bus load of the DBC's frames at a sample rate",
         description="What the frames of the DBC cost on the bus at a sample rate, per message, and the "
-                    "highest rate within the 80 %% the service allows. Without flags: the shipped gain "
+                    "highest rate within the 80 % the service allows. Without flags: the shipped gain "
                     "table's rate on the HAL's default bus (CAN FD 1 Mbit/s with a 4 Mbit/s data phase); "
                     "--config takes the rate from a service configuration's gain table and the bus from "
                     "its hal.can section; the flags override either.")

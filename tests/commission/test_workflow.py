@@ -38,10 +38,10 @@ def rig(tmp_path):
 def test_an_interrupted_commissioning_goes_on_where_it_stopped_and_its_table_holds_the_rig(rig, tmp_path):
     out = tmp_path / "out"
     process = beamctl("commission", "--config", str(rig), "--out", str(out), *FAST, cwd=tmp_path)
-    code, err = interrupt_when(process, b"step 4/6 gains ...")
+    code, err = interrupt_when(process, b"step 5/7 gains ...")
     assert code == 130 and "interrupted (SIGINT" in err and "Traceback" not in err, err
     state = json.loads((out / STATE).read_text())
-    assert state["done"] == ["identify", "fit", "box"], state
+    assert state["done"] == ["identify", "fit", "stacks", "box"], state
     assert not (out / "gains.yaml").exists() and not list(out.glob("*.tmp*")) and not list(out.glob(".*")), (
         sorted(p.name for p in out.iterdir()))
     measured = (out / "frf_2000N.npz").stat().st_mtime_ns
@@ -49,7 +49,7 @@ def test_an_interrupted_commissioning_goes_on_where_it_stopped_and_its_table_hol
     assert main(["commission", "--config", str(rig), "--out", str(out), *FAST, "--json"]) == 0
     assert (out / "frf_2000N.npz").stat().st_mtime_ns == measured, "a step done before was run again"
     state = json.loads((out / STATE).read_text())
-    assert state["done"] == ["identify", "fit", "box", "gains", "experiment", "report"], state
+    assert state["done"] == ["identify", "fit", "stacks", "box", "gains", "experiment", "report"], state
 
     # the fit: the rig's own E and kr within 1 %, its damping within 10 %, each inside its interval
     fit = json.loads((out / "fit.json").read_text())
@@ -68,8 +68,17 @@ def test_an_interrupted_commissioning_goes_on_where_it_stopped_and_its_table_hol
     summary = json.loads((out / "experiment" / "summary.json").read_text())["commission"]
     assert summary["own_critical_load_N"] == pytest.approx(own, rel=1e-9)
     assert summary["held_past_own_critical_load"], summary
+    # the stacks' use predicted from the two measurements' static strains is what the controlled
+    # run on the rig used: near its critical load and midway (the run's voltages also carry the
+    # control's own motion and the noise: 6 %)
+    stacks = json.loads((out / "stacks.json").read_text())
+    run = np.array(summary["stack_use"])
+    for low, high in ((0.95 * own, own), (2400.0, 2600.0)):
+        near = run[(run[:, 0] > low) & (run[:, 0] < high), 1]
+        predicted = np.interp(0.5 * (low + high), stacks["loads_n"], stacks["fraction"])
+        assert near.size > 5 and np.median(near) == pytest.approx(predicted, rel=0.06), (low, near, predicted)
     report = (out / "report.html").read_text()
-    for figure in ("fig5a_frequency_response.png", *(f"experiment/{p.name}"
+    for figure in ("fig5a_frequency_response.png", "stacks_vs_load.png", *(f"experiment/{p.name}"
                                                      for p in (out / "experiment").glob("*.png"))):
         assert f"src='{figure}'" in report and (out / figure).exists(), figure
 
@@ -115,10 +124,11 @@ def test_a_step_whose_files_are_gone_is_run_again_with_every_step_after_it(rig, 
     settings = CommissionSettings(averages=3, robust=False)
     first = Commission(rig, out, settings, log=lambda line: None)
     (out / STATE).write_text(json.dumps({**first.identity, "done": list(STEPS)}))
-    for name in ("frf_2000N.npz", "fit.json", "fitted.yaml", "gains.yaml", "report.html"):
+    for name in ("frf_1000N.npz", "frf_2000N.npz", "fit.json", "fitted.yaml", "stacks.json", "gains.yaml",
+                 "report.html"):
         (out / name).write_text("")         # box.yaml and the experiment are gone
     again = Commission(rig, out, settings, log=lambda line: None)
-    assert again.done == ["identify", "fit"], again.done
+    assert again.done == ["identify", "fit", "stacks"], again.done
 
 
 def test_a_changed_model_file_the_configuration_names_makes_it_another_commissioning(tmp_path):
@@ -133,6 +143,7 @@ def test_a_changed_model_file_the_configuration_names_makes_it_another_commissio
     settings = CommissionSettings(averages=3, robust=False)
     first = Commission(config, out, settings, log=lambda line: None)
     (out / STATE).write_text(json.dumps({**first.identity, "done": ["identify"]}))
+    (out / "frf_1000N.npz").write_text("")
     (out / "frf_2000N.npz").write_text("")
     assert Commission(config, out, settings, log=lambda line: None).done == ["identify"], "the same rig"
     model.write_text(yaml.safe_dump({**MODEL, "supports": {"rotational_stiffness": 160.0}}))

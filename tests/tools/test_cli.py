@@ -243,3 +243,23 @@ def test_experiment_telemetry_takes_the_folder_it_records_into(tmp_path, capsys)
     assert main(argv) == 2
     _one_line_error(capsys, "beamctl experiment: error:", "--telemetry", "not a directory")
     assert not (tmp_path / "report").exists() or not any((tmp_path / "report").iterdir())
+
+
+def test_every_help_page_shows_its_percent_signs_once():
+    """argparse %-formats help strings but prints descriptions as written: a description that
+    wrote %% showed "95 %%" to the reader."""
+    import argparse
+
+    from beamctl.tools.cli import build_parser
+
+    def pages(parser, name):
+        yield name, parser.format_help()
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for sub_name, sub in action.choices.items():
+                    yield from pages(sub, f"{name} {sub_name}")
+
+    shown = dict(pages(build_parser(), "beamctl"))
+    assert len(shown) > 20, sorted(shown)
+    doubled = [name for name, text in shown.items() if "%%" in text]
+    assert not doubled, f"help pages that print '%%': {doubled}"

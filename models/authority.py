@@ -1,0 +1,210 @@
+"""Stack authority: how much of the stacks' voltage swing holding the beam straight takes at
+each axial load, predicted from static strains measured at rest below the critical load.
+
+At rest, integral action holds the gauges' strains at zero, so the stacks' four static forces u
+(Fay,A, Faz,A, Fay,B, Faz,B) cancel the strain that the rig's imperfections (an eccentric load, a
+bow, clamping moments: whatever they are) cause at that load:
+
+    X(F) u = -s_p(F),    X(F) = C0 (Ke - F Kg)^-1 B0  (the model's static strain per force),
+
+s_p the static strain of the beam without the stacks ("passive") at load F. A measurement at rest
+at load F_m with static forces u_m (zero in open loop at bias; the law's in closed loop) gives
+s_p(F_m) = s_m - X(F_m) u_m. Between and beyond the measured loads s_p follows Southwell, per gauge
+
+    s_p(F) = F (a / (1 - F / Fcr) + b)
+
+(a: the first buckling mode's share, amplified towards Fcr; b: the rest, nearly constant),
+fitted by least squares to the measured loads (two or more); from one load b = 0 (all of the
+imperfection in the first mode: rough, it errs by up to 10 % either way on rigs whose
+imperfection is partly an eccentric load). The prediction needs no model of the imperfection,
+only the model's static compliance X, which the fit to the frequency responses determines.
+Near Fcr the demand tends to a finite value (both X and s_p grow as 1 / (1 - F/Fcr)): there the
+beam's own stiffness is gone and the stacks carry the whole imperfection; past Fcr it goes on
+growing. No design does better at Fcr itself: any static shape the stacks hold there needs the
+same first-mode force.
+
+The voltages follow the allocation (rt/allocation.py): ``scale`` needs the spread of a
+support's three voltages within the span; ``clip`` each stack within its own room about the
+bias. The fraction of the swing used is the largest over the supports (or stacks); 1 means a
+stack at its limit.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from beamctl.models.actuators import StackGeometry
+from beamctl.models.analysis import buckling_mode, critical_load
+from beamctl.models.fe import FEModel
+
+# the load just below Fcr where the demand at Fcr is evaluated (the formulas' common pole)
+BELOW_CRITICAL = 1e-4
+# the grid of the predicted curve: from 0 to this multiple of Fcr
+GRID_TOP_FRACTION = 1.2
+GRID_POINTS = 121
+
+
+@dataclass(frozen=True)
+class StaticPoint:
+    """The beam at rest at one load: the mean strains (4, as the gauges read them: zero with the
+    beam unloaded) and the stacks' mean forces (4, N) while they were measured."""
+
+    load_n: float
+    strain: tuple[float, float, float, float]
+    force_n: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    source: str = ""
+
+
+@dataclass
+class StackAuthority:
+    """The prediction: the fraction of the stacks' swing used at each load."""
+
+    critical_load_n: float
+    loads_n: list[float]
+    fraction: list[float]
+    measured: list[tuple[float, float]]          # (load, fraction) at the measured loads
+    at_critical: float                           # the fraction at Fcr
+    limit_n: float | None                        # the first load at which a stack reaches its limit
+    method: str
+    warnings: list[str] = field(default_factory=list)
+    forces: Callable[[float], np.ndarray] | None = field(default=None, repr=False, compare=False)
+
+    def to_json(self) -> dict:
+        return {"critical_load_n": self.critical_load_n, "at_critical": self.at_critical,
+                "limit_n": self.limit_n, "method": self.method, "measured": self.measured,
+                "loads_n": self.loads_n, "fraction": self.fraction, "warnings": self.warnings}
+
+    def text(self) -> str:
+        """One line: the fraction at Fcr and where the stacks run out."""
+        head = (f"holding the beam straight takes {100 * self.at_critical:.0f} % of the stacks' swing "
+                f"at the fitted Fx,cr {self.critical_load_n:.0f} N")
+        if self.limit_n is not None and self.limit_n <= self.critical_load_n:
+            return (f"{head}: NOT ENOUGH, a stack reaches its limit at about {self.limit_n:.0f} N. The "
+                    "rig's imperfection (eccentric load, bow) needs more force there than these stacks "
+                    "give, whatever the gains: align the load line, straighten the beam, or use stiffer "
+                    "stacks")
+        tail = (f"; a stack reaches its limit at about {self.limit_n:.0f} N" if self.limit_n is not None
+                else f"; within the swing to {self.loads_n[-1]:.0f} N")
+        return f"{head} ({self.method}){tail}"
+
+
+def static_compliance(model: FEModel, load_n: float) -> np.ndarray:
+    """[4 x 4] X(F): the static strains per newton of each stack force at axial load F."""
+    k = model.load_stiffness(load_n)
+    return model.output_matrix @ np.linalg.solve(k, model.input_matrix)
+
+
+def passive_strain(model: FEModel, point: StaticPoint) -> np.ndarray:
+    """s_p at the point's load: the measured strain less what the stacks' forces caused."""
+    forces = np.asarray(point.force_n, float)
+    return np.asarray(point.strain, float) - static_compliance(model, point.load_n) @ forces
+
+
+def swing_fraction(forces: np.ndarray, geometry: StackGeometry, min_v: float, max_v: float,
+                   allocation: str = "scale") -> float:
+    """The fraction of the swing that the four forces take (see the module docstring)."""
+    axes = geometry.axes()
+    k = geometry.force_constant_n_per_v
+    worst = 0.0
+    for s in range(2):
+        volts = 2.0 / 3.0 * axes[s] @ forces[2 * s:2 * s + 2] / k      # about the centre (or bias)
+        if allocation == "clip":
+            up, down = max_v - geometry.bias_voltage_v, geometry.bias_voltage_v - min_v
+            worst = max(worst, *(v / up if v > 0 else -v / down for v in volts))
+        else:
+            worst = max(worst, float(np.ptp(volts)) / (max_v - min_v))
+    return worst
+
+
+def voltage_fraction(voltages, min_v: float, max_v: float, bias_v: float, allocation: str = "scale") -> float:
+    """The fraction of the swing six applied voltages (a1, a2, a3, b1, b2, b3) take: the spread
+    of a support's three over the span (``scale``), or a stack's distance from the bias over its
+    room on that side (``clip``); the larger of the supports'."""
+    v = np.asarray(voltages, dtype=float).reshape(2, 3)
+    if allocation == "clip":
+        d = v - bias_v
+        return float(np.max(np.where(d > 0, d / (max_v - bias_v), -d / (bias_v - min_v))))
+    return float(np.max(np.ptp(v, axis=1)) / (max_v - min_v))
+
+
+def predict(model: FEModel, points: list[StaticPoint], geometry: StackGeometry, min_v: float,
+            max_v: float, allocation: str = "scale") -> StackAuthority:
+    """The stacks' use over the load range from static measurements (module docstring).
+
+    Raises ValueError (one line, naming the measurement) when a point cannot be used: a load not
+    between 0 and Fcr, a strain or force that is not finite."""
+    fcr = critical_load(model)
+    if not points:
+        raise ValueError("stack authority: no static measurement")
+    for p in points:
+        where = f"static measurement {p.source or ''} at {p.load_n:g} N".replace("  ", " ")
+        if not (0.0 < p.load_n < fcr):
+            raise ValueError(f"{where}: the load must be above 0 and below the critical load {fcr:.0f} N")
+        if len(p.strain) != 4 or len(p.force_n) != 4 or not np.all(np.isfinite([*p.strain, *p.force_n])):
+            raise ValueError(f"{where}: 4 finite strains and 4 finite forces expected")
+    loads = np.array([p.load_n for p in points])
+    sp = np.array([passive_strain(model, p) / p.load_n for p in points])        # [m x 4]
+    amp = 1.0 / (1.0 - loads / fcr)
+    # only the first buckling mode grows as 1 / (1 - F/Fcr): a lies in the strain pattern of its
+    # two planes (anything else fitted into a would be amplified without bound near Fcr)
+    pattern = np.column_stack([model.output_matrix @ buckling_mode(model, plane)[1] for plane in ("y", "z")])
+    warnings: list[str] = []
+    m = len(points)
+    if len(np.unique(np.round(loads))) >= 2:
+        # unknowns: alpha (2), b (4); equations: 4 per load
+        design = np.zeros((4 * m, 6))
+        for i in range(m):
+            design[4 * i:4 * i + 4, :2] = amp[i] * pattern
+            design[4 * i:4 * i + 4, 2:] = np.eye(4)
+        coef, *_ = np.linalg.lstsq(design, sp.reshape(-1), rcond=None)
+        a, b = pattern @ coef[:2], coef[2:]
+        method = f"Southwell through the static strains at {', '.join(f'{x:.0f}' for x in loads)} N"
+    else:
+        coef, *_ = np.linalg.lstsq(amp[0] * pattern, sp[0], rcond=None)
+        a, b = pattern @ coef, np.zeros(4)
+        method = f"from one load ({loads[0]:.0f} N), rough"
+        warnings.append("the stacks' use near Fx,cr is estimated from one load (up to 10 % off either "
+                        "way): measure at two loads (for example --loads 1000,2000) to predict it closely")
+
+    def forces(f: float) -> np.ndarray:
+        """The four static forces that hold the gauges at zero strain at load f."""
+        return -np.linalg.solve(static_compliance(model, f), f * (a / (1.0 - f / fcr) + b))
+
+    def fraction_at(f: float) -> float:
+        return swing_fraction(forces(f), geometry, min_v, max_v, allocation)
+
+    grid = np.linspace(0.0, GRID_TOP_FRACTION * fcr, GRID_POINTS)
+    grid = grid[np.abs(grid / fcr - 1.0) > BELOW_CRITICAL]
+    fraction = [fraction_at(float(f)) for f in grid]
+    at_critical = fraction_at(fcr * (1.0 - BELOW_CRITICAL))
+    limit = None
+    for f0, f1, r0, r1 in zip(grid[:-1], grid[1:], fraction[:-1], fraction[1:], strict=True):
+        if r0 < 1.0 <= r1:
+            limit = float(f0 + (1.0 - r0) / (r1 - r0) * (f1 - f0))
+            break
+    if limit is None and at_critical >= 1.0:
+        limit = fcr
+    measured = []
+    for p in points:
+        u = np.asarray(p.force_n, float) - np.linalg.solve(static_compliance(model, p.load_n),
+                                                           np.asarray(p.strain, float))
+        measured.append((p.load_n, swing_fraction(u, geometry, min_v, max_v, allocation)))
+    return StackAuthority(critical_load_n=fcr, loads_n=[float(x) for x in grid], fraction=fraction,
+                          measured=measured, at_critical=at_critical, limit_n=limit, method=method,
+                          warnings=warnings, forces=forces)
+
+
+def finite_point(load_n: float, static: dict, source: str) -> StaticPoint:
+    """A StaticPoint from a measurement's ``settings["static"]`` (identification/identify.py)."""
+    try:
+        strain = tuple(float(x) for x in static["strain"])
+        force = tuple(float(x) for x in static.get("force_n", (0.0,) * 4))
+    except (KeyError, TypeError, ValueError):
+        raise ValueError(f"{source}: its static strains are not 4 numbers") from None
+    if len(strain) != 4 or len(force) != 4 or not all(math.isfinite(x) for x in (*strain, *force)):
+        raise ValueError(f"{source}: its static strains are not 4 finite numbers")
+    return StaticPoint(load_n=load_n, strain=strain, force_n=force, source=source)
