@@ -315,12 +315,23 @@ class Commission:
         (self.out / "gains-not-held.yaml").unlink(missing_ok=True)      # an earlier run's, not this table
         return note
 
+    def _stacks_limit(self) -> float | None:
+        """The load at which the stacks step predicts a stack reaches its limit at or below the
+        fitted Fx,cr (None: the stacks hold the beam straight to Fx,cr, or not predicted)."""
+        stacks = json.loads((self.out / "stacks.json").read_text())
+        limit = stacks.get("limit_n")
+        return limit if limit is not None and limit <= stacks["critical_load_n"] else None
+
     def _experiment(self) -> str:
         if self.cfg.hal.backend != "sim":
+            limit = self._stacks_limit()
+            raise_to = ("raise the load" if limit is None else
+                        f"raise the load no further than about {0.95 * limit:.0f} N (the stacks step: a stack "
+                        f"reaches its limit at about {limit:.0f} N, below Fx,cr)")
             return ("a real rig: stopped here, before the beam is loaded past its critical load. Next: "
                     f"set gains.table: {self.out / 'gains.yaml'} and the fitted force constant "
                     f"({self.out / 'fitted.yaml'}) in the rig's configuration, `beamctl config check`, then "
-                    "`beamctl run --hold` and raise the load")
+                    f"`beamctl run --hold` and {raise_to}")
         raw = read_yaml(self.config_path)
         _, k = load_fitted(str(self.out / "fitted.yaml"))
         scenario = {**raw, "gains": {"table": str(self.out / "gains.yaml")},
@@ -346,6 +357,7 @@ class Commission:
         use = [[round(float(row[0]), 1), round(authority.voltage_fraction(row[1:], *limits), 4)]
                for row in traces["interpolate"].voltages]
         summary["commission"] = {"own_critical_load_N": own, "let_go_at_N": let_go, "stack_use": use,
+                                 "stacks_limit_N": self._stacks_limit(),
                                  "fault": summary["controlled"].get("fault", ""),
                                  "max_load_N": float(loads.max()) if loads.size else None,
                                  "held_past_own_critical_load": bool(
@@ -415,6 +427,8 @@ def held_text(c: dict[str, Any]) -> str:
                      "load the beam's own stiffness is nearly gone and the stacks carry the moment of the "
                      "rig's eccentric load and bow, so their force, not the gains, is the limit; a "
                      "straighter load line holds longer")
+            if c.get("stacks_limit_N") is not None:
+                text += f" (the stacks step predicted a stack at its limit from about {c['stacks_limit_N']:.0f} N)"
         elif c.get("fault"):
             text += f" ({c['fault']})"
         return text

@@ -175,5 +175,24 @@ def test_a_beam_lost_because_the_stacks_ran_out_is_said_so():
     text = held_text({"own_critical_load_N": 3230.0, "let_go_at_N": 3134.0, "max_load_N": 3136.0,
                       "fault": "PERSISTENT_SATURATION: the stack voltages stayed saturated for too long"})
     assert "3134 N" in text and "their force, not the gains, is the limit" in text, text
+    predicted = held_text({"own_critical_load_N": 3230.0, "let_go_at_N": 3134.0, "max_load_N": 3136.0,
+                           "stacks_limit_N": 3024.6, "fault": "PERSISTENT_SATURATION: ..."})
+    assert "predicted a stack at its limit from about 3025 N" in predicted, predicted
     held = held_text({"own_critical_load_N": 3214.0, "let_go_at_N": None, "max_load_N": 3900.0, "fault": ""})
     assert held.endswith("held below 1 mm to the ramp's end, 3900 N"), held
+
+
+def test_against_a_real_rig_the_stop_says_how_far_the_stacks_will_hold_the_beam(rig, tmp_path):
+    """Stopped before the beam is loaded past Fx,cr: where the stacks step found they run out
+    below it, the next step names a load below that, not just 'raise the load'."""
+    from dataclasses import replace
+
+    from beamctl.commission.workflow import Commission, CommissionSettings
+
+    c = Commission(rig, tmp_path / "out", CommissionSettings(averages=3, robust=False), log=lambda line: None)
+    c.cfg = replace(c.cfg, hal=replace(c.cfg.hal, backend="can"))
+    (c.out / "stacks.json").write_text(json.dumps({"critical_load_n": 3200.0, "limit_n": 3000.0}))
+    text = c._experiment()
+    assert "stopped here" in text and "no further than about 2850 N" in text and "3000 N" in text, text
+    (c.out / "stacks.json").write_text(json.dumps({"critical_load_n": 3200.0, "limit_n": 3500.0}))
+    assert c._experiment().endswith("`beamctl run --hold` and raise the load")
