@@ -326,7 +326,8 @@ class Commission:
         if self.cfg.hal.backend != "sim":
             limit = self._stacks_limit()
             raise_to = ("raise the load" if limit is None else
-                        f"raise the load no further than about {0.95 * limit:.0f} N (the stacks step: a stack "
+                        f"raise the load no further than about {0.95 * limit:.0f} N (the stacks step: a "
+                        "stack "
                         f"reaches its limit at about {limit:.0f} N, below Fx,cr)")
             return ("a real rig: stopped here, before the beam is loaded past its critical load. Next: "
                     f"set gains.table: {self.out / 'gains.yaml'} and the fitted force constant "
@@ -428,7 +429,8 @@ def held_text(c: dict[str, Any]) -> str:
                      "rig's eccentric load and bow, so their force, not the gains, is the limit; a "
                      "straighter load line holds longer")
             if c.get("stacks_limit_N") is not None:
-                text += f" (the stacks step predicted a stack at its limit from about {c['stacks_limit_N']:.0f} N)"
+                text += (" (the stacks step predicted a stack at its limit from about "
+                         f"{c['stacks_limit_N']:.0f} N)")
         elif c.get("fault"):
             text += f" ({c['fault']})"
         return text
