@@ -326,9 +326,8 @@ class Commission:
         if self.cfg.hal.backend != "sim":
             limit = self._stacks_limit()
             raise_to = ("raise the load" if limit is None else
-                        f"raise the load no further than about {0.95 * limit:.0f} N (the stacks step: a "
-                        "stack "
-                        f"reaches its limit at about {limit:.0f} N, below Fx,cr)")
+                        f"raise the load no further than about {0.95 * limit:.0f} N (the stacks step: "
+                        f"a stack reaches its limit at about {limit:.0f} N, below Fx,cr)")
             return ("a real rig: stopped here, before the beam is loaded past its critical load. Next: "
                     f"set gains.table: {self.out / 'gains.yaml'} and the fitted force constant "
                     f"({self.out / 'fitted.yaml'}) in the rig's configuration, `beamctl config check`, then "
