@@ -10,8 +10,9 @@ from pathlib import Path
 
 import numpy as np
 
+from beamctl.commission.workflow import stack_authority
 from beamctl.common.outputs import check_dir, check_file, write_text
-from beamctl.config.schema import ConfigError
+from beamctl.config.schema import ConfigError, read_yaml
 from beamctl.identification.fit_files import fitted_document, read_eigenfrequencies
 from beamctl.identification.frf_files import read_frf
 from beamctl.models.fit import (
@@ -23,7 +24,7 @@ from beamctl.models.fit import (
     fit,
 )
 from beamctl.reports import plots
-from beamctl.service.setup import load_model_file
+from beamctl.service.setup import load_model_file, service_config
 from beamctl.tools import argtypes
 from beamctl.tools.progress import ProgressBar
 
@@ -37,7 +38,9 @@ def add_parser(sub) -> None:
         description="Nonlinear least squares of the log-magnitude and phase errors, weighted by coherence, "
                     "from the --config model as start, within bounds (a factor 3 of the start; gauges "
                     "+-10 mm). Reports each value, its standard error and the correlated pairs; a fit that "
-                    "did not converge is refused and nothing is written.")
+                    "did not converge is refused and nothing is written. Where the measurements carry "
+                    "static strains (beamctl identify records them), also the stacks' use at the fitted "
+                    "critical load, as beamctl commission's stacks step.")
     p.add_argument("frf", nargs="+", metavar="FRF", help="measured frequency responses (.npz, .mat, .csv)")
     p.add_argument("--config", metavar="F", help="the start model (model parameters, or a configuration "
                    "with a model: section; default: the paper's Table 1)")
@@ -61,6 +64,18 @@ def add_parser(sub) -> None:
 
 def _fmt(v) -> str:
     return "[" + ", ".join(f"{e:.6g}" for e in v) + "]" if isinstance(v, list) else f"{v:.6g}"
+
+
+def _stacks(config: str | None, result, data) -> dict | None:
+    """The stacks' use over the load range (commission's stacks step) where the measurements carry
+    static strains (``beamctl identify`` records them); the voltage range and allocation of the
+    --config's controller section where it has one, else the defaults."""
+    if not any(isinstance(d.settings.get("static"), dict) for d in data):
+        return None
+    raw = read_yaml(config) if config else {}
+    controller = raw.get("controller") if isinstance(raw, dict) else None
+    cfg = service_config({"controller": controller} if controller else {}, config or "defaults")
+    return stack_authority(cfg, result.parameters, result.force_constant_n_per_v, data)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -90,8 +105,9 @@ def run(args: argparse.Namespace) -> int:
     if plot_dir is not None:
         written.append(plots.figure_5a(data, start, (result.parameters, result.force_constant_n_per_v),
                                  plot_dir / FIG5A))
+    stacks = _stacks(args.config, result, data)
     if args.json:
-        print(json.dumps(result.to_json(), indent=1))
+        print(json.dumps({**result.to_json(), **({"stacks": stacks} if stacks else {})}, indent=1))
         return 0
     print(f"fitted {len(result.keys)} parameters to {len(data)} measurement(s){' and ' if eigen else ''}"
           f"{f'{len(eigen)} eigenfrequencies' if eigen else ''}: cost {result.cost:.6g} "
@@ -107,6 +123,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"  correlated (poorly separable): {pair.replace('|', ' and ')}: {r:+.3f}")
     for warning in result.warnings:
         print(f"  warning: {warning}")
+    if stacks:
+        print(f"  stacks: {stacks['text']}")
     if FORCE_CONSTANT_KEY in result.values:
         print(f"set controller.actuators.force_constant_n_per_v: {result.values[FORCE_CONSTANT_KEY]:.6g} "
               f"in the rig's configuration")
