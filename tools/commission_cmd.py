@@ -34,8 +34,8 @@ def add_parser(sub) -> None:
                         "plant section is the rig)")
     p.add_argument("--out", metavar="DIR", required=True, help="the commissioning folder")
     p.add_argument("--loads", default="1000,2000", metavar="N,N,...", help="loads in N to identify at "
-                   "(default 1000,2000; two or more predict the stacks' use at Fx,cr within about 1 %%, "
-                   "one within about 5 %%)")
+                   "(default 1000,2000; two or more apart predict the stacks' use at Fx,cr within about "
+                   "2 %%, one only roughly)")
     p.add_argument("--averages", type=argtypes.number(low=3, integer=True), default=8, metavar="A",
                    help="averaged excitation periods per input (default 8)")
     p.add_argument("--params", default="E,kr,damping,force_constant", metavar="P,P,...",

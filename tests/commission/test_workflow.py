@@ -196,3 +196,71 @@ def test_against_a_real_rig_the_stop_says_how_far_the_stacks_will_hold_the_beam(
     assert "stopped here" in text and "no further than about 2850 N" in text and "3000 N" in text, text
     (c.out / "stacks.json").write_text(json.dumps({"critical_load_n": 3200.0, "limit_n": 3500.0}))
     assert c._experiment().endswith("`beamctl run --hold` and raise the load")
+
+
+def _measurement(load, static, k=3.0, source="frf.npz"):
+    from beamctl.models.measured import FrfData, nan_matrix
+
+    frf, coherence = nan_matrix(1)
+    return FrfData(frequencies_hz=np.array([10.0]), frf=frf, coherence=coherence, load_n=load,
+                   force_constant_n_per_v=k, settings={"static": static} if static is not None else {},
+                   source=source)
+
+
+def test_the_stacks_step_says_why_it_cannot_predict_and_never_fails():
+    from beamctl.commission.workflow import stack_authority
+    from beamctl.service.setup import service_config
+
+    cfg, params = service_config({}), load_parameters()
+    for data, needle in (([_measurement(2000.0, None)], "no static strains"),
+                         ([_measurement(2000.0, {"strain": [1e-6, 2e-6, 3e-6]}, source="/x/frf_2000N.npz")],
+                          "frf_2000N.npz: its static strains are not 4 numbers"),
+                         ([_measurement(2000.0, [1, 2, 3, 4], source="frf_2000N.npz")], "not a mapping"),
+                         ([_measurement(4000.0, {"strain": [1e-6] * 4}, source="frf_4000N.npz")],
+                          "frf_4000N.npz at 4000 N are left out")):
+        result = stack_authority(cfg, params, None, data)
+        assert result["text"].startswith("not predicted") and needle in result["text"], result["text"]
+
+
+def test_forces_recorded_with_the_controller_s_force_constant_are_taken_at_the_fitted_one():
+    """A closed-loop measurement records k_config (V - bias); the stacks give k_fitted (V - bias):
+    the same voltages, so the same fraction of the swing whichever constant the file was
+    measured with."""
+    from beamctl.commission.workflow import stack_authority
+    from beamctl.service.setup import service_config
+
+    cfg, params = service_config({}), load_parameters()
+    volts = {1000.0: np.array([13.0, -8.0, 13.0, -8.0]), 2000.0: np.array([29.0, -18.0, 29.0, -18.0])}
+    measured = {}
+    for k in (3.0, 3.3):     # the file's own force constant: forces = k (V - bias) of the same V
+        data = [_measurement(f, {"strain": [0.0] * 4, "force_n": list(k * v)}, k=k) for f, v in volts.items()]
+        measured[k] = [fraction for _, fraction in stack_authority(cfg, params, 3.3, data)["measured"]]
+    assert measured[3.0] == pytest.approx(measured[3.3], rel=1e-9), measured
+
+
+def test_a_folder_without_the_stacks_step_runs_it_and_the_report_again_alone(rig, tmp_path):
+    from beamctl.commission.workflow import STEPS, Commission, CommissionSettings
+
+    out = tmp_path / "out"
+    settings = CommissionSettings(averages=3, robust=False)
+    first = Commission(rig, out, settings, log=lambda line: None)
+    (out / STATE).write_text(json.dumps({**first.identity, "done": [s for s in STEPS if s != "stacks"]}))
+    for name in ("frf_1000N.npz", "frf_2000N.npz", "fit.json", "fitted.yaml", "box.yaml", "gains.yaml",
+                 "report.html"):
+        (out / name).write_text("")
+    (out / "experiment").mkdir()
+    (out / "experiment" / "summary.json").write_text("{}")
+    again = Commission(rig, out, settings, log=lambda line: None)
+    assert again.done == ["identify", "fit", "box", "gains", "experiment"], again.done
+
+
+def test_the_refusal_of_another_commissioning_names_what_differs(rig, tmp_path, capsys):
+    from beamctl.commission.workflow import Commission, CommissionSettings
+
+    out = tmp_path / "out"
+    first = Commission(rig, out, CommissionSettings(loads_n=(2000.0,), averages=3, robust=False),
+                       log=lambda line: None)
+    (out / STATE).write_text(json.dumps({**first.identity, "done": ["identify"]}))
+    assert main(["commission", "--config", str(rig), "--out", str(out), *FAST]) == 2
+    err = capsys.readouterr().err
+    assert "its loads_n [2000.0], here [1000.0, 2000.0]" in err and len(err.strip().splitlines()) == 1, err
