@@ -228,8 +228,8 @@ class Commission:
         sim = self.cfg.hal.backend == "sim"
         gains = ["gains.yaml", "robust.json"] if self.settings.robust else ["gains.yaml"]
         return {"fit": ["fit.json", "fitted.yaml"], "stacks": ["stacks.json"], "box": ["box.yaml"],
-                "gains": gains,
-                "experiment": ["experiment/summary.json"] if sim else [], "report": ["report.html"]}[step]
+                "gains": gains, "experiment": ["experiment/summary.json"] if sim else [],
+                "report": ["report.html"]}[step]
 
     def _frf_paths(self) -> list[Path]:
         return [self.out / f"frf_{load:g}N.npz" for load in self.settings.loads_n]
