@@ -59,7 +59,8 @@ from beamctl.service.setup import ServiceConfig, load_gain_table, service_config
 from beamctl.simulation.experiment import experiment_config, experiment_tables, run_experiment
 
 STEPS = ("identify", "fit", "stacks", "box", "gains", "experiment", "report")
-# steps whose files no later step reads (only the report): missing, they are run again alone
+# steps whose files only the report reads as they are (the experiment quotes the stacks' limit,
+# the report the current one): missing, they are run again alone, and the report after them
 ADVISORY = ("stacks",)
 STATE = "commission.json"
 STACKS_FIGURE = "stacks_vs_load.png"
@@ -167,7 +168,7 @@ class Commission:
                 recorded = json.loads(state.read_text())
                 # a folder of an earlier beamctl lacks keys: another commissioning, not a damaged one
                 same = {k: recorded.get(k) for k in self.identity} == self.identity
-                done = list(recorded["done"])
+                done = list(recorded["done"]) if same else []
             except (ValueError, KeyError, TypeError, AttributeError):
                 raise ConfigError("--out", str(self.out), f"a commissioning folder ({STATE} there is "
                                   "damaged: move it away to start again)") from None
@@ -277,7 +278,7 @@ class Commission:
         write_text(self.out / "stacks.json", json.dumps(result, indent=1) + "\n")
         for warning in result.get("warnings", []):
             self.log(f"warning: {warning}")
-        if "NOT ENOUGH" in result["text"]:
+        if result.get("not_enough"):
             self.log(f"warning: the stacks cannot hold this rig straight to its critical load (a stack "
                      f"at its limit from about {result['limit_n']:.0f} N): see below")
         return result["text"]
@@ -331,8 +332,7 @@ class Commission:
         """The load at which the stacks step predicts a stack reaches its limit at or below the
         fitted Fx,cr (None: the stacks hold the beam straight to Fx,cr, or not predicted)."""
         stacks = json.loads((self.out / "stacks.json").read_text())
-        limit = stacks.get("limit_n")
-        return limit if limit is not None and limit <= stacks["critical_load_n"] else None
+        return stacks.get("limit_n") if stacks.get("not_enough") else None
 
     def _experiment(self) -> str:
         if self.cfg.hal.backend != "sim":
@@ -396,6 +396,8 @@ class Commission:
             run = json.loads(experiment.read_text()) if experiment.exists() else None
             plots.stack_use_figure(stacks, run["commission"].get("stack_use") if run else None,
                                    self.out / STACKS_FIGURE, run["plant_critical_load_N"] if run else None)
+        else:                                   # not predicted: an earlier figure is not this one's
+            (self.out / STACKS_FIGURE).unlink(missing_ok=True)
         write_text(self.out / "report.html", report_html(self.out))
         return "report.html"
 
@@ -413,10 +415,11 @@ def _differences(recorded: dict[str, Any], identity: dict[str, Any]) -> str:
     [1000.0, 2000.0]' (settings by name; the configuration and the files it names by what)."""
     found = []
     theirs = recorded.get("settings") if isinstance(recorded.get("settings"), dict) else {}
-    for key, value in identity["settings"].items():
-        if theirs.get(key) != value:
-            found.append(f"its {key} {theirs.get(key)}, here {value}"
-                         + (" (settings not given take their defaults)" if key == "loads_n" else ""))
+    ours = identity["settings"]
+    for key in [*ours, *(k for k in theirs if k not in ours)]:
+        if theirs.get(key) != ours.get(key):
+            found.append(f"its {key} {theirs.get(key)}, here {ours.get(key)}"
+                         + (" (the default loads are 1000,2000)" if key == "loads_n" else ""))
     for key, what in (("config", "another configuration file"), ("config_sha256", "the configuration edited"),
                       ("model_sha256", "another model"), ("table_sha256", "another gain table")):
         if recorded.get(key) != identity[key]:
@@ -427,34 +430,46 @@ def _differences(recorded: dict[str, Any], identity: dict[str, Any]) -> str:
 def stack_authority(cfg: ServiceConfig, params: ModelParameters, force_constant: float | None,
                     data: list[FrfData]) -> dict[str, Any]:
     """The stacks' use over the load range (models/authority.py) from the measurements' static
-    strains, with the fitted model and force constant (the configuration's where not fitted);
-    JSON-ready, with ``text`` the one line the workflow says. A measurement records the forces its
-    controller believed it applied (its own force constant): they are rescaled to the fitted one,
-    as the fit rescales its frequency responses."""
+    strains, with the fitted model and force constant (where it was not fitted, the measurements'
+    own, as the fit takes it, else the configuration's); JSON-ready, with ``text`` the one line the
+    workflow says. A measurement records the forces its controller believed it applied (its own
+    force constant): they are rescaled to the fitted one, as the fit rescales its frequency
+    responses. A measurement that cannot be used is left out with a warning naming it."""
     a = cfg.controller.actuators
-    k = force_constant if force_constant is not None else a.force_constant_n_per_v
+    recorded = [d.force_constant_n_per_v for d in data if d.force_constant_n_per_v]
+    k = force_constant or (recorded[0] if recorded else a.force_constant_n_per_v)
     geometry = StackGeometry(force_constant_n_per_v=k, bias_voltage_v=a.bias_voltage_v,
                              orientation_deg=tuple(a.orientation_deg))
-    with_static = [d for d in data if "static" in d.settings]
-    if not with_static:
-        return {"text": "not predicted: the measurements carry no static strains (measured by hand or by "
-                        "an earlier beamctl: identify again to have them)", "warnings": []}
-    try:
-        points = []
-        for d in with_static:
-            name = Path(d.source).name if d.source else "a measurement"
-            if not isinstance(d.settings["static"], dict):
+    warnings: list[str] = []
+    points = []
+    for d in data:
+        name = Path(d.source).name if d.source else "a measurement"
+        static = d.settings.get("static")
+        if static is None:
+            warnings.append(f"{name} carries no static strains (measured by hand or by an earlier beamctl): "
+                            "left out")
+            continue
+        try:
+            if not isinstance(static, dict):
                 raise ValueError(f"{name}: its static strains are not a mapping of strain and force_n")
-            point = finite_point(d.load_n, d.settings["static"], name)
-            if d.force_constant_n_per_v:
-                scale = k / d.force_constant_n_per_v
-                point = replace(point, force_n=tuple(scale * f for f in point.force_n))
-            points.append(point)
+            point = finite_point(d.load_n, static, name)
+        except ValueError as exc:
+            warnings.append(f"{exc}: left out")
+            continue
+        if d.force_constant_n_per_v:
+            scale = k / d.force_constant_n_per_v
+            point = replace(point, force_n=tuple(scale * f for f in point.force_n))
+        points.append(point)
+    if not points:
+        return {"text": "not predicted: no measurement carries usable static strains (identify again to "
+                        "have them)", "warnings": warnings}
+    try:
         result = authority.predict(build_model(params), points, geometry, a.min_voltage_v, a.max_voltage_v,
                                    cfg.controller.allocation)
     except ValueError as exc:
-        return {"text": f"not predicted: {exc}", "warnings": []}
-    return {**result.to_json(), "force_constant_n_per_v": k, "text": result.text()}
+        return {"text": f"not predicted: {exc}", "warnings": warnings}
+    return {**result.to_json(), "warnings": warnings + result.warnings, "force_constant_n_per_v": k,
+            "text": result.text()}
 
 
 def held_text(c: dict[str, Any]) -> str:
@@ -523,9 +538,11 @@ def report_html(out: Path) -> str:
     experiment = out / "experiment" / "summary.json"
     if experiment.exists():
         s = json.loads(experiment.read_text())
+        # the stacks step's limit as it is now (it may have been run again after the experiment)
+        limit = stacks.get("limit_n") if stacks and stacks.get("not_enough") else None
         parts.append("<h2>Simulated experiment on the rig</h2>" + table([
             ("the rig's own Fx,cr", f"{s['plant_critical_load_N']:.0f} N"),
-            ("controlled run", held_text(s["commission"]))]))
+            ("controlled run", held_text({**s["commission"], "stacks_limit_N": limit}))]))
         parts += [f"<img src='experiment/{p.name}' alt='{html.escape(p.stem)}'>"
                   for p in sorted((out / "experiment").glob("*.png"))]
     return "\n".join(parts) + "\n"

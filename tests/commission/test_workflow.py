@@ -191,10 +191,12 @@ def test_against_a_real_rig_the_stop_says_how_far_the_stacks_will_hold_the_beam(
 
     c = Commission(rig, tmp_path / "out", CommissionSettings(averages=3, robust=False), log=lambda line: None)
     c.cfg = replace(c.cfg, hal=replace(c.cfg.hal, backend="can"))
-    (c.out / "stacks.json").write_text(json.dumps({"critical_load_n": 3200.0, "limit_n": 3000.0}))
+    (c.out / "stacks.json").write_text(json.dumps({"critical_load_n": 3200.0, "limit_n": 3000.0,
+                                                   "not_enough": True}))
     text = c._experiment()
     assert "stopped here" in text and "no further than about 2850 N" in text and "3000 N" in text, text
-    (c.out / "stacks.json").write_text(json.dumps({"critical_load_n": 3200.0, "limit_n": 3500.0}))
+    (c.out / "stacks.json").write_text(json.dumps({"critical_load_n": 3200.0, "limit_n": 3500.0,
+                                                   "not_enough": False}))
     assert c._experiment().endswith("`beamctl run --hold` and raise the load")
 
 
@@ -207,19 +209,38 @@ def _measurement(load, static, k=3.0, source="frf.npz"):
                    source=source)
 
 
-def test_the_stacks_step_says_why_it_cannot_predict_and_never_fails():
+def test_the_stacks_step_leaves_out_what_it_cannot_use_naming_it_and_never_fails():
     from beamctl.commission.workflow import stack_authority
     from beamctl.service.setup import service_config
 
     cfg, params = service_config({}), load_parameters()
-    for data, needle in (([_measurement(2000.0, None)], "no static strains"),
-                         ([_measurement(2000.0, {"strain": [1e-6, 2e-6, 3e-6]}, source="/x/frf_2000N.npz")],
-                          "frf_2000N.npz: its static strains are not 4 numbers"),
-                         ([_measurement(2000.0, [1, 2, 3, 4], source="frf_2000N.npz")], "not a mapping"),
-                         ([_measurement(4000.0, {"strain": [1e-6] * 4}, source="frf_4000N.npz")],
-                          "frf_4000N.npz at 4000 N are left out")):
-        result = stack_authority(cfg, params, None, data)
-        assert result["text"].startswith("not predicted") and needle in result["text"], result["text"]
+    good = [_measurement(1000.0, {"strain": [1e-6, -1e-6, 1e-6, -1e-6]}, source="frf_1000N.npz"),
+            _measurement(2000.0, {"strain": [3e-6, -3e-6, 3e-6, -3e-6]}, source="frf_2000N.npz")]
+    for bad, needle in ((_measurement(1500.0, None, source="hand.mat"), "hand.mat carries no static strains"),
+                        (_measurement(1500.0, {"strain": [1e-6, 2e-6, 3e-6]}, source="/x/frf_1500N.npz"),
+                         "frf_1500N.npz: its static strains are not 4 numbers"),
+                        (_measurement(1500.0, {"strain": "1234"}, source="s.npz"),
+                         "s.npz: its static strains"),
+                        (_measurement(1500.0, [1, 2, 3, 4], source="l.npz"),
+                         "l.npz: its static strains are not a"),
+                        (_measurement(1500.0, {"strain": [1e300] * 4}, source="h.npz"),
+                         "h.npz at 1500 N are left out: beyond any elastic strain"),
+                        (_measurement(4000.0, {"strain": [1e-6] * 4}, source="frf_4000N.npz"),
+                         "frf_4000N.npz at 4000 N are left out")):
+        result = stack_authority(cfg, params, None, [*good, bad])
+        assert "fraction" in result and any(needle in w for w in result["warnings"]), (
+            needle, result["warnings"])
+        alone = stack_authority(cfg, params, None, [bad])
+        assert alone["text"].startswith("not predicted"), alone["text"]
+
+
+def test_without_a_fitted_force_constant_the_measurements_own_is_taken_as_the_fit_takes_it():
+    from beamctl.commission.workflow import stack_authority
+    from beamctl.service.setup import service_config
+
+    data = [_measurement(f, {"strain": [1e-6 * f / 1000] * 4}, k=3.3) for f in (1000.0, 2000.0)]
+    result = stack_authority(service_config({}), load_parameters(), None, data)
+    assert result["force_constant_n_per_v"] == 3.3, "the configuration believes 3.0"
 
 
 def test_forces_recorded_with_the_controller_s_force_constant_are_taken_at_the_fitted_one():
