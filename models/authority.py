@@ -169,8 +169,9 @@ def predict(model: FEModel, points: list[StaticPoint], geometry: StackGeometry, 
             max_v: float, allocation: str = "scale") -> StackAuthority:
     """The stacks' use over the load range from static measurements (module docstring).
 
-    Raises ValueError (one line, naming the measurement) when a point cannot be used: a load not
-    between 0 and Fcr, a strain or force that is not finite."""
+    A point that cannot be used (a load not between 0 and Fcr, a strain or force not finite or
+    beyond any beam's) is left out, named in ``warnings``. Raises ValueError (one line) when none
+    is left, naming the first left out, or when the result is not finite."""
     fcr = critical_load(model)
     warnings: list[str] = []
     usable = []
@@ -187,8 +188,7 @@ def predict(model: FEModel, points: list[StaticPoint], geometry: StackGeometry, 
         else:
             usable.append(p)
     if not usable:
-        raise ValueError("no static measurement between 0 and the critical load"
-                         + (f" ({warnings[0]})" if warnings else ""))
+        raise ValueError("no usable static measurement" + (f" ({warnings[0]})" if warnings else ""))
     loads = np.array([p.load_n for p in usable])
     sp = np.array([passive_strain(model, p) for p in usable])                   # [m x 4]
     amp = 1.0 / (1.0 - loads / fcr)
