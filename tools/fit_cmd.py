@@ -72,9 +72,12 @@ def _stacks(config: str | None, result, data) -> dict | None:
     --config's controller section where it has one, else the defaults."""
     if not any(isinstance(d.settings.get("static"), dict) for d in data):
         return None
-    raw = read_yaml(config) if config else {}
-    controller = raw.get("controller") if isinstance(raw, dict) else None
-    cfg = service_config({"controller": controller} if controller else {}, config or "defaults")
+    try:
+        raw = read_yaml(config) if config else {}
+        controller = raw.get("controller") if isinstance(raw, dict) else None
+        cfg = service_config({"controller": controller} if controller else {}, config or "defaults")
+    except ConfigError as exc:          # the fit is written: the stacks' line says why it is missing
+        return {"text": f"not predicted: {exc}", "warnings": []}
     return stack_authority(cfg, result.parameters, result.force_constant_n_per_v, data)
 
 
@@ -125,6 +128,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"  warning: {warning}")
     if stacks:
         print(f"  stacks: {stacks['text']}")
+        for warning in stacks.get("warnings", []):
+            print(f"  stacks warning: {warning}")
     if FORCE_CONSTANT_KEY in result.values:
         print(f"set controller.actuators.force_constant_n_per_v: {result.values[FORCE_CONSTANT_KEY]:.6g} "
               f"in the rig's configuration")
