@@ -48,12 +48,12 @@ from beamctl.identification.fit_files import fitted_document, load_fitted
 from beamctl.identification.frf_files import read_frf, write_frf
 from beamctl.identification.identify import IdentifySettings, identify
 from beamctl.models import authority, build_model, critical_load
-from beamctl.models.actuators import StackGeometry
 from beamctl.models.authority import finite_point
 from beamctl.models.fit import FitError, FitSettings, fit, resolve_keys
 from beamctl.models.measured import FrfData
 from beamctl.models.params import ModelParameters
 from beamctl.reports import plots
+from beamctl.rt.allocation import geometry as controller_geometry
 from beamctl.rt.stop import StopRequest
 from beamctl.service.setup import ServiceConfig, load_gain_table, service_config
 from beamctl.simulation.experiment import experiment_config, experiment_tables, run_experiment
@@ -438,8 +438,7 @@ def stack_authority(cfg: ServiceConfig, params: ModelParameters, force_constant:
     a = cfg.controller.actuators
     recorded = [d.force_constant_n_per_v for d in data if d.force_constant_n_per_v]
     k = force_constant or (recorded[0] if recorded else a.force_constant_n_per_v)
-    geometry = StackGeometry(force_constant_n_per_v=k, bias_voltage_v=a.bias_voltage_v,
-                             orientation_deg=tuple(a.orientation_deg))
+    geometry = controller_geometry(replace(a, force_constant_n_per_v=k))
     warnings: list[str] = []
     points = []
     for d in data:

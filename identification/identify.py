@@ -333,7 +333,6 @@ def estimate(rec: Recording, sample_rate_hz: float, band_hz: tuple[float, float]
     """(frequencies [nf], H [nf x 4 x 4], coherence [nf x 4 x 4]) from a recording, at the
     lines of the period within the band (see the module docstring)."""
     p = rec.period_samples
-    per_input = rec.periods * p
     freqs = np.fft.rfftfreq(p, 1.0 / sample_rate_hz)
     keep = excited_lines(p, sample_rate_hz, band_hz)
     nf = len(keep)
@@ -342,7 +341,7 @@ def estimate(rec: Recording, sample_rate_hz: float, band_hz: tuple[float, float]
     coherence = nan_matrix(nf)[1]
     kwargs = {"fs": sample_rate_hz, "window": "boxcar", "nperseg": p, "noverlap": 0, "detrend": False}
     for k, j in enumerate(rec.inputs):
-        rows = slice(k * per_input + rec.transient * p, (k + 1) * per_input)   # the transient dropped
+        rows = averaged(rec, k)
         r = rec.forces[rows, j] if not closed_loop else rec.reference[rows]
         _, s_rr = sig.welch(r, **kwargs)
         for i in range(4):
@@ -364,15 +363,18 @@ def estimate(rec: Recording, sample_rate_hz: float, band_hz: tuple[float, float]
     return freqs[keep], frf, np.clip(coherence, 0.0, 1.0, where=np.isfinite(coherence), out=coherence)
 
 
+def averaged(rec: Recording, k: int) -> slice:
+    """The samples of the k-th excited input's averaged periods (its transient dropped)."""
+    per_input = rec.periods * rec.period_samples
+    return slice(k * per_input + rec.transient * rec.period_samples, (k + 1) * per_input)
+
+
 def static_means(rec: Recording) -> dict[str, list[float]]:
     """The mean strains and stack forces over the averaged periods (the excitation has no mean:
     what is left is the beam at rest at the measurement's load; models/authority.py uses it)."""
-    p = rec.period_samples
-    per_input = rec.periods * p
-    rows = np.concatenate([np.arange(k * per_input + rec.transient * p, (k + 1) * per_input)
-                           for k in range(len(rec.inputs))])
-    return {"strain": [float(x) for x in rec.strains[rows].mean(axis=0)],
-            "force_n": [float(x) for x in rec.forces[rows].mean(axis=0)]}
+    parts = [averaged(rec, k) for k in range(len(rec.inputs))]
+    return {"strain": [float(x) for x in np.concatenate([rec.strains[r] for r in parts]).mean(axis=0)],
+            "force_n": [float(x) for x in np.concatenate([rec.forces[r] for r in parts]).mean(axis=0)]}
 
 
 def identify(cfg: ServiceConfig, table: GainTable, s: IdentifySettings, progress=None,

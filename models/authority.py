@@ -140,18 +140,12 @@ def passive_strain(model: FEModel, point: StaticPoint) -> np.ndarray:
 
 def swing_fraction(forces: np.ndarray, geometry: StackGeometry, min_v: float, max_v: float,
                    allocation: str = "scale") -> float:
-    """The fraction of the swing that the four forces take (see the module docstring)."""
-    axes = geometry.axes()
-    k = geometry.force_constant_n_per_v
-    worst = 0.0
-    for s in range(2):
-        volts = 2.0 / 3.0 * axes[s] @ forces[2 * s:2 * s + 2] / k      # about the centre (or bias)
-        if allocation == "clip":
-            up, down = max_v - geometry.bias_voltage_v, geometry.bias_voltage_v - min_v
-            worst = max(worst, *(v / up if v > 0 else -v / down for v in volts))
-        else:
-            worst = max(worst, float(np.ptp(volts)) / (max_v - min_v))
-    return worst
+    """The fraction of the swing that the four forces take (see the module docstring): the
+    voltages V_i = bias + 2/3 e_i . F / k, unclipped, measured as ``voltage_fraction`` does."""
+    bias = geometry.bias_voltage_v
+    volts = [bias + 2.0 / 3.0 * axes @ forces[2 * s:2 * s + 2] / geometry.force_constant_n_per_v
+             for s, axes in enumerate(geometry.axes())]
+    return voltage_fraction(np.concatenate(volts), min_v, max_v, bias, allocation)
 
 
 def voltage_fraction(voltages, min_v: float, max_v: float, bias_v: float, allocation: str = "scale") -> float:
