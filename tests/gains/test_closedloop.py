@@ -6,7 +6,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from beamctl.gains.build import check_load
+from beamctl.gains.build import check_load, nominal_rig
 from beamctl.gains.closedloop import closed_loop_matrix
 from beamctl.gains.compensator import MATRICES, PLANE_CHANNELS, CompensatorPoint
 from beamctl.gains.defaults import paper_table_path
@@ -17,6 +17,7 @@ from beamctl.hal.base import Sample
 from beamctl.models.iochain import IOChain
 from beamctl.rt.config import controller_config
 from beamctl.rt.controller import Controller
+from tests.rounding import assert_within, spectral_radius_rounding
 
 
 @pytest.fixture(scope="module")
@@ -94,7 +95,14 @@ def test_z_plane_check_equals_y_plane_check(paper_model, table):
     point = GainSchedule.from_table(table).matrices_at(3500.0)
     y = check_load(paper_model, 3500.0, point, table, "y")
     z = check_load(paper_model, 3500.0, point, table, "z")
-    assert z.spectral_radius == pytest.approx(y.spectral_radius, rel=1e-9)
+    # two eigenvalue solves of two matrices equal to rounding: within what the solver guarantees
+    # of the dominant pole (8e-7 here, 1 % of the table's stability margin; seen: 4e-15)
+    matrix = nominal_rig(paper_model, table, "y").loop_matrix(3500.0, point, table.compensator.h,
+                                                              table.compensator.plane_states["y"],
+                                                              table.compensator.period_s)
+    bound = spectral_radius_rounding(matrix)
+    assert bound < 0.05 * (1.0 - max(c.spectral_radius for c in table.checks)), "too coarse to tell"
+    assert_within(z.spectral_radius, y.spectral_radius, bound, "spectral radius of the z and the y plane")
 
 
 def test_uncontrolled_beam_beyond_buckling_is_unstable_in_the_check(paper_model, table):
@@ -104,6 +112,7 @@ def test_uncontrolled_beam_beyond_buckling_is_unstable_in_the_check(paper_model,
     result = check_load(paper_model, 3500.0, zero, table)
     assert not result.stable and result.spectral_radius > 1.05
     below = check_load(paper_model, 3000.0, zero, table)
+    # a physical tolerance: a pole within 1e-9 of 1 is an integrator (a time constant of 1e9 samples)
     assert below.spectral_radius == pytest.approx(1.0, abs=1e-9), "integrators without feedback"
 
 

@@ -17,6 +17,7 @@ from beamctl.models.fe import (
     element_matrices,
     plane_indices,
 )
+from tests.rounding import assert_within, eigenvalue_rounding, symmetric_pencil
 
 E_AL, R_B, L_B = 75.8e9, 4.0e-3, 0.400
 EI = E_AL * np.pi * R_B**4 / 4
@@ -37,7 +38,12 @@ def test_eigenfrequencies_at_2000_N_are_the_paper_s_123_6_and_466_2_Hz(paper_mod
 def test_circular_section_has_identical_y_and_z_frequencies(paper_model, load):
     fy = eigenfrequencies(paper_model, load, 4, "y")
     fz = eigenfrequencies(paper_model, load, 4, "z")
-    np.testing.assert_allclose(fz, fy, rtol=1e-10, err_msg=f"y and z differ at {load} N")
+    # to what a symmetric eigensolver guarantees of each plane's eigenvalue (eps lambda_max /
+    # lambda), halved for a frequency, twice for two solves
+    idx = plane_indices(paper_model.n_nodes, "y")
+    k = paper_model.load_stiffness(load)
+    lam = symmetric_pencil(k[np.ix_(idx, idx)], paper_model.mass[np.ix_(idx, idx)])
+    assert_within(fz, fy, eigenvalue_rounding(lam)[:4] * fy, f"y and z frequencies at {load} N")
     # and the full 4N problem has each of them twice
     lam = sla.eigh(paper_model.load_stiffness(load), paper_model.mass, eigvals_only=True,
                    subset_by_index=[0, 7])
