@@ -5,6 +5,7 @@ limits of that loop per grid load, covering the same loads (gains/ridethrough.py
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from importlib import metadata
@@ -12,7 +13,7 @@ from importlib import metadata
 import numpy as np
 
 from beamctl.config.schema import ConfigError
-from beamctl.gains import lqg, ridethrough
+from beamctl.gains import lqg, ridethrough, robust
 from beamctl.gains.compensator import Compensator, CompensatorPoint, from_integral_lqr
 from beamctl.gains.defaults import (
     DEFAULT_DESIGN,
@@ -28,6 +29,7 @@ from beamctl.gains.lqr import lqr_gain
 from beamctl.gains.rig import RigPlane
 from beamctl.gains.schedule import GainSchedule
 from beamctl.gains.table import DesignSettings, GainTable, ScheduleSettings
+from beamctl.models.analysis import critical_load
 from beamctl.models.fe import FEModel
 from beamctl.models.iochain import IOChain
 from beamctl.models.modal import reduce
@@ -114,12 +116,58 @@ def closed_loop_checks(model: FEModel, table: GainTable, progress: Progress | No
     return tuple(results)
 
 
+def ride_through_rigs(model: FEModel, table: GainTable) -> tuple[list[RigPlane], list[str]]:
+    """The rigs the ride-through analysis covers: the nominal rig and, where the table records a
+    robust check, its worst rig (gains/robust.py); with their names."""
+    rigs, names = [nominal_rig(model, table)], ["the nominal rig"]
+    record = table.robust or {}
+    if record.get("worst_rig") and isinstance(record.get("box"), dict):
+        box = robust.box_from_dict(record["box"], table.model_parameters, "the table's robust check")
+        rig = robust.rig_of(table, box, record["worst_rig"])
+        rigs.append(robust.rig_plane(rig))
+        names.append(f"the robust check's worst rig ({robust.describe(record['worst_rig'], box)})")
+    return rigs, names
+
+
+# Above this fraction of the nominal Fx,cr the ride-through is analysed every FINE_STEP_N too
+# (besides the check's loads): a gap's growth rises steeply with the load there, and the engine
+# takes the largest of an interval's ends, so a coarse interval would cost its lower end much of
+# its limit (the survival edge in the time domain, simulation/stall.py)
+FINE_FROM_FRACTION = 0.95
+FINE_STEP_N = 25.0
+
+
+def ride_through_plan(table: GainTable, critical_n: float) -> list[tuple[float, float | None, CompensatorPoint]]:
+    """The loads the ride-through is analysed at: every load of the closed-loop check
+    (``check_plan``) and, from FINE_FROM_FRACTION of ``critical_n`` to the table's top, every
+    FINE_STEP_N (the schedule's settled matrices there), ascending."""
+    plan = check_plan(table)
+    schedule = GainSchedule.from_table(table)
+    for load in _fine_loads(table.loads_n, {round(p[0], 6) for p in plan}, critical_n):
+        plan.append((load, None, schedule.matrices_at(load)))
+    return sorted(plan, key=lambda p: p[0])
+
+
 def ride_through(model: FEModel, table: GainTable, progress: Progress | None = None, done: int = 0,
                  total: int | None = None) -> ridethrough.RideThrough:
-    """The ride-through limits of ``table``'s loop on the nominal rig per grid load, covering
-    every load of its closed-loop check (gains/ridethrough.py)."""
-    plan = check_plan(table)
-    return ridethrough.analyse(model, nominal_rig(model, table), table, plan, progress, done, total)
+    """The ride-through analysis of ``table``'s loop on the nominal rig and the robust check's
+    worst rig where the table records one (``ride_through_rigs``), at every load of its
+    closed-loop check and finer near and above the critical load (``ride_through_plan``;
+    gains/ridethrough.py)."""
+    rigs, names = ride_through_rigs(model, table)
+    plan = ride_through_plan(table, critical_load(model))
+    return ridethrough.analyse(rigs, table, plan, progress, done, total, rig_names=names)
+
+
+def with_robust(model: FEModel, table: GainTable, record: dict,
+                progress: Progress | None = None) -> GainTable:
+    """``table`` with the robust check ``record`` (gains/robust.py ``table_record``) and, where it
+    had a ride-through analysis, that analysis again over the nominal rig and the worst rig the
+    check found (a gap the nominal rig survives can be too long for the rig the box allows)."""
+    table = replace(table, robust=record)
+    if table.ride_through is None or not table.all_stable:
+        return table
+    return replace(table, ride_through=ride_through(model, table, progress))
 
 
 def _checked(model: FEModel, table: GainTable, force: bool, analyse: bool, progress: Progress | None,
@@ -134,10 +182,18 @@ def _checked(model: FEModel, table: GainTable, force: bool, analyse: bool, progr
     return replace(table, forced=force and not table.all_stable)
 
 
-def _check_steps(loads: np.ndarray, schedule: ScheduleSettings, analyse: bool) -> int:
+def _fine_loads(loads: Sequence[float], have: set, critical_n: float) -> list[float]:
+    """The loads ``ride_through_plan`` adds to the check's (``have``, rounded to 1e-6 N)."""
+    top = float(loads[-1])
+    start = FINE_STEP_N * math.ceil(FINE_FROM_FRACTION * critical_n / FINE_STEP_N)
+    return [float(x) for x in np.arange(start, top, FINE_STEP_N) if round(float(x), 6) not in have]
+
+
+def _check_steps(loads: np.ndarray, schedule: ScheduleSettings, analyse: bool, critical_n: float) -> int:
     """Progress steps of the check and the ride-through analysis."""
     plan = _plan_loads(loads, schedule)
-    return len(plan) + (ridethrough.steps(plan) if analyse else 0)
+    extra = len(_fine_loads(loads, {round(p[0], 6) for p in plan}, critical_n)) if analyse else 0
+    return len(plan) + (ridethrough.steps(plan) + 2 * extra if analyse else 0)
 
 
 def integral_lqr_compensator(gains: np.ndarray, c0_phi_inv: np.ndarray,
@@ -166,7 +222,7 @@ def build_table(model: FEModel, loads_n: Sequence[float] | None = None, mode: st
         raise ConfigError("--grid", loads.tolist(), "at least two grid points to interpolate between")
     schedule = schedule or replace(DEFAULT_SCHEDULE, mode=mode)
     reduced = reduce(model)
-    total = len(loads) + (_check_steps(loads, schedule, analyse_ride_through) if check else 0)
+    total = len(loads) + (_check_steps(loads, schedule, analyse_ride_through, critical_load(model)) if check else 0)
     gains = np.zeros((len(loads), 4, 12))
     for i, load in enumerate(loads):
         gains[i] = lqr_gain(reduced, load, design.weights)
@@ -197,7 +253,7 @@ def build_lqg_table(model: FEModel, loads_n: Sequence[float] | None = None,
         raise ConfigError("--mode", schedule.mode, "'interpolate' for an lqg design (the paper's "
                           "switching belongs to the integral-lqr design)")
     reduced = reduce(model)
-    total = 2 + (_check_steps(loads, schedule, analyse_ride_through) if check else 0)
+    total = 2 + (_check_steps(loads, schedule, analyse_ride_through, critical_load(model)) if check else 0)
     steps = iter(range(1, 3))
     comp = lqg.design(model, loads, sample_rate_hz, chain, reduced.c0_phi_inv, settings,
                       progress=(lambda plane: progress(next(steps), total, f"LQG plane {plane}"))

@@ -1,96 +1,85 @@
-"""How far the closed loop rides through missing samples and late answers: computed when a
-table is built and stored in it (``ride_through:``), so that the real-time engine bridges
-missing samples by the compensator's prediction and faults only past limits that come from
-analysis.
+"""How long the closed loop rides through a stall (samples missing, or answers late: to the beam
+the same, the stacks hold a stale voltage), in absolute terms: computed when a table is built and
+stored in it (``ride_through:``); the real-time engine turns it into a live limit from what it
+measures while it runs (rt/engine.py, ``_live_limit``).
 
-What the engine does, and what is analysed here: the nominal rig (the model's FE plane with the
-I/O chain the design declares, ``gains.build.nominal_rig``) at every load of the table's
-closed-loop check (``gains.build.check_plan``: grid points, midpoints, paper mode's band ends),
-in the loop of gains/closedloop.py (state z = [plant x, applied forces of the last whole+1
-samples, compensator x_c, integral xi]).
+Survival. A gap of N samples is survived when, through the gap and the recovery after it, the
+beam's deflection stays within the strain limit the supervisor enforces and the stacks' voltages
+within their range, with ``confidence_sigma`` (3.5) standard deviations to spare. The strain limit
+is the deflection limit: at the shipped 0.5 x the proportional limit it is reached at about 13 mm,
+well inside the end stops (models/plant.py, 20 mm for the paper's beam). What a gap does to the
+beam is the loop's linear physics, per load: the table stores, for every gap length N of a grid
+(``gap_grid_samples``), how much the spread of the buckling mode's deflection and of the stacks'
+forces grows, the growth g(N) = the largest RMS at any sample of the gap and its recovery over the
+stationary RMS. The size of what must be survived comes from the rig itself: the engine measures,
+while it runs, the spread (RMS) and the mean of its own estimate of mode 1 (q_1 in each plane, in
+the strains it puts at the gauges) and of every stack's voltage, and takes the headroom the
+operating point leaves (the strain limit less the largest mean strain; the nearer voltage limit
+less each stack's mean). A gap of N is allowed while
 
-Gap. The DAQ's samples stop for N sample periods (a stall, lost frames). Nothing is answered,
-so the stacks hold the voltages of the last answer: the plant runs on with the force u_held of
-the last sample's answer. When the next sample arrives the engine first runs N prediction steps
-of the compensator, y_hat = P x_c (``Compensator.predict``; a table without one: the strains
-last measured), xi unchanged, x_c <- A x_c + B y_hat + E u_held, then the normal step on the new
-sample. The plant does not see the compensator while the voltages are held, so running those
-steps late or on time is the same loop: per missing sample
+    confidence_sigma x g_deflection(N) x spread_deflection <= strain headroom   and
+    confidence_sigma x g_voltage(N) x spread_voltage       <= voltage headroom,
 
-    x  <- Ad x + (B_now + B_before) u_held        (the delayed ZOH, every force in it held)
-    x_c <- (A + B P) x_c + E u_held ;  xi <- xi
+and the live limit is the longest gap of the grid allowed. A rig with a larger spread, or less
+headroom (more load, a larger bow), gets a shorter limit; below the critical load the growth
+stays near 1 and the limit is the cap. The relative criterion of earlier tables ("the RMS at most
+doubles") is gone: a gap is lost when the beam or the stacks reach a limit, and the margin is the
+k-sigma bound on a linear model evaluated on the rigs below, not a factor on a small number.
 
-and then the normal loop again (``gap_matrix``).
+Rigs. The growth is analysed on the nominal rig (the model's FE plane with the design's I/O chain,
+``gains.build.nominal_rig``) and, where the table records a robust check, on its worst rig too
+(its own beam, supports, damping, stacks, delay, gauges and DAQ clock, gains/robust.py): the
+stored growth is the larger at every load and gap. A rig whose loop is unstable at a load is not
+held there at all and has no stationary state to ride through from: it does not count at that
+load (its onset is what the robust check reports).
 
-Survival. The loop runs stationary, driven by a force disturbance at the stacks, white per
-sample and entering the plant as the LQG design's force noise does (held over the sample:
-B_now + B_before per unit force; only ratios matter, so its size cancels). A gap starts after a
-normal sample; the state covariance is propagated exactly through the N missing samples (the
-disturbance still acting) and then through the normal loop until it has settled. The gap is
-survived when the RMS of the beam's lateral deflection at every sampling instant of the gap and
-of the recovery stays at most ``growth_limit`` (2: it at most doubles) times its stationary
-RMS. The deflection is the modal displacement of mode 1 (the lowest mode of the plane's FE
-model at that load, mass-normalised, projected with the mass matrix): the buckling mode, which
-the loop holds and which diverges when it is open beyond Fx,cr. The strains are not used: the
-disturbance excites modes 3 and 5, which weigh 8 to 90 times as much in the strains as in the
-deflection and which the loop barely changes, so their share would hide mode 1's growth.
+Bridges. When a gap ends the engine has ``missed`` samples to bridge before it answers the newest
+one. It holds the estimate (``hold``): the compensator's state and the integral stay as they
+were, and the newest sample enters the normal step (what a silence ending with the next sample in
+order amounts to). The other way, ``predict`` (N prediction steps of the compensator, y_hat =
+P x_c, x_c <- A x_c + B y_hat + E u_held, then the normal step), has a growth of its spread
+close to hold's here, but in the time domain it drifts from the operating point the beam is held
+at (the static deflection of the bow under load, which the prediction does not hold): over CAN at
+2800 to 3300 N on the simulated rig, a 1 ms gap bridged by prediction moved the stacks by 3 to 85
+V, held by 0.2 to 1 V. ``gap_matrix`` builds both (tests/gains/test_ridethrough.py compares them
+in the time domain); the table stores the growth of the bridge the engine runs.
 
-How: the stationary covariance by a Lyapunov solve (states scaled by their stationary RMS); the
-gap's trajectory, the same for every N, by rows out G^j; the covariance after N missing samples
-by binary powers of G (and their noise sums), from the longest gap's computed so far; the
-recovery sample by sample while a bound says whether a later sample can still pass the limit:
-with Delta_m the covariance's excess over the
-stationary Sigma after m normal samples (Delta_m+1 = M Delta_m M^T), once Delta_m <= alpha Pi
-(Pi = Sigma + 1e-6 Y, Y = M Y M^T + I, so that Pi >= M Pi M^T) no later sample's variance
-exceeds the stationary one plus alpha times out Pi out^T. A recovery not bounded within the
-limit after RECOVERY_CAP_SAMPLES counts as lost. Settling is thus exact, not a guess at a time
-constant (the integral's poles take 10^4 to 10^5 samples; what they carry is small).
+The plant does not see the compensator while the voltages are held, so running those steps late
+or on time is the same loop: per missing sample, x <- Ad x + g (B_now + B_before) u_held (the
+delayed ZOH with every force in it held; g the rig's stack gain), and the compensator as above
+(``gap_matrix``); then the normal loop again.
 
-Per load. The limits are found for every load of the table's grid (``table.loads_n``) and
-stored one value per grid load (``max_gap_samples_per_load``, ``gap_limits_samples``,
-``max_extra_delay_samples_per_load``, ``answer_budgets_periods``): the engine applies per grid
-interval the lesser of its two ends. The loop between grid points (the check plan's midpoints,
-and in paper mode the band ends where a grid point's matrices act away from it) is covered by
-testing each such check load at its interval's limits: where it fails them, its own limit
-(found below them) replaces the lesser end's, so that the lesser end of every interval is at
-most the limit of every check load in it. The scalars (``max_gap_samples``, ``gap_load_N``,
-``max_extra_delay_samples``, ``delay_load_N`` and the limits from them) are the worst over all
-of these: the least value and the check load it was found at.
+How. The loop runs stationary, driven by a force disturbance at the stacks, white per sample and
+entering the plant as the LQG design's force noise does (only ratios are stored, so its size
+cancels). A gap starts after a normal sample; the state covariance is propagated exactly through
+the N missing samples (the disturbance still acting) and then through the normal loop until a
+bound says no later sample can exceed the largest so far (or 1.1 x stationary): with Delta_m the
+covariance's excess over the stationary Sigma after m normal samples (Delta_m+1 = M Delta_m M^T),
+once Delta_m <= alpha Pi (Pi = Sigma + 1e-6 Y, Y = M Y M^T + I, so that Pi >= M Pi M^T) no later
+sample's variance exceeds the stationary one plus alpha times out Pi out^T. The stationary
+covariance by a Lyapunov solve (states scaled by their stationary RMS); the gap's trajectory, the
+same for every N, by rows out G^j; the covariance after N missing samples by binary powers of G
+from the last N's. The growth is made non-decreasing in N (the largest up to N), and a growth past
+``GROWTH_CAP`` is stored as the cap (no headroom allows it).
 
-Gap search. Capped at a practical horizon, ``GAP_HORIZON_S`` (0.1 s: 600 samples at 6000 Hz,
-250 at 2500 Hz; a DAQ silent that long has stopped, it is not a gap to ride through): a load
-that rides through that long reports the cap (``RideThrough.gap_capped``, ``gap_cap_samples``).
-The grid loads are walked from the top down, each search started from the answer of the load
-above (the gap grows as the load falls): the gap of that length is tested at this load and the
-search gallops up (or down, where it is lost here: the gap need not grow at every step, e.g.
-12 samples at 3400 N and 13 at 3500 N in the shipped LQG) and bisects, testing about 2 log2 of
-the distance; the answer is always a gap tested and survived at that load. Survival need not fall
-with the gap's length near the limit either (the recovery's peak follows the phase of the
-loop's oscillation at the gap's end: at 0 N in the shipped LQG every other gap from 522 to 530
-samples is lost, 531 to 546 survived, then 548 and 553 among lost ones), so the answer is an
-edge of that band (survived, the next gap lost), and gaps somewhat shorter may be lost: in the
-shipped tables the first gap lost is at least 92 % of the answer at every check load (walked
-gap by gap), so the engine's limit, half the answer, is far below it. ``gap_limits_samples`` =
-floor(max_gap_samples_per_load / margin), margin 2: the run of missing samples (or late
-answers) the engine bridges before it faults.
+The deflection is the modal displacement of mode 1 (the lowest mode of the plane's FE model at
+that load, mass-normalised, projected with the mass matrix): the buckling mode, which the loop
+holds and which diverges when it is open beyond Fx,cr; the voltage the larger of the plane's two
+support forces (a stack's voltage is its support's y and z forces combined: the planes are
+independent, so its growth is at most the larger of theirs).
+
+Loads. The analysed loads are those of the table's closed-loop check (``gains.build.check_plan``:
+grid points, midpoints, paper mode's band ends); the engine takes, per grid interval, the largest
+growth of every analysed load in it, ends included.
 
 Delay. The largest extra output delay, on a grid of ``DELAY_STEP_SAMPLES`` up to
 ``DELAY_CAP_SAMPLES``, on top of the design's own (``design.io.delay_samples``), with which the
-loop is stable (spectral radius < 1) at that load and at every delay of the grid below it.
-Stability need not fall with the delay (a pole can be unstable in a window of delays only), so
-every grid load walks the grid up from the nominal, a loop's poles per grid delay (about 3 to 5
-ms); the other check loads are tested at their interval's limit (and walked below it only where
-unstable there). The engine's answer budget counts from the sample's arrival and the design
-already assumes its own delay, an answer within it being on time: ``answer_budgets_periods`` =
-design delay + max_extra_delay_samples_per_load / margin (``answer_budget_periods`` likewise at
-the worst load). An answer sent later than that counts as late, and a run of more than the gap
-limit of late answers faults.
-
-Cost (``RideThrough.elapsed_s``): about 8 s for either shipped table on a shared 2-core machine
-(the search to 2000 samples at every grid load took 70 to 80 s): the gap about 40 ms a check
-load (the Lyapunov solves of its loop, a neighbouring load's stationary RMS as its scale, and
-about 5 survival tests a grid load), the delay half of it, a loop's poles (3 to 5 ms) per grid
-delay walked, 20 at every grid load that holds the cap.
+nominal loop is stable (spectral radius < 1) at that load and at every delay of the grid below
+it; the engine's answer budget is the design's delay plus half of it (``DELAY_MARGIN``), per grid
+load (``answer_budgets_periods``). An answer sent later counts as late; a run of late answers
+longer than the live limit faults. Stability need not fall with the delay (a pole can be unstable
+in a window of delays only), so every grid load walks the grid up from the nominal; the other
+check loads are tested at their interval's limit (and walked below it only where unstable there).
 """
 
 from __future__ import annotations
@@ -112,111 +101,161 @@ from beamctl.models.iochain import (
     DelayedZOH,
     _gamma,  # the one matrix exponential of a ZOH
 )
+from beamctl.rt.engine import gap_allowed
 
-GROWTH_LIMIT = 2.0          # the deflection's RMS may at most double during a gap and its recovery
-MARGIN = 2.0                # the engine's limits are the analysis' divided by this
-GAP_HORIZON_S = 0.1         # the gap search stops at this long a gap: the DAQ has stopped, not paused
+CONFIDENCE_SIGMA = 3.5      # the k of the k-sigma bound (one-sided 2.3e-4 at the recovery's peak, on
+                            # spreads measured with the gauges' noise in them, which does not grow in a
+                            # gap: in the time domain the survival edge is 1.3 to 2 x the limit,
+                            # simulation/stall.py)
+GROWTH_CAP = 2.0e3          # a growth beyond this is stored as this: no headroom allows it (75 V over
+                            # 3.5 x 0.05 V RMS is 429; 3200 ue over 3.5 x 0.5 ue 1830)
+SETTLED = 1.1               # the recovery is followed until nothing later exceeds max(peak, 1.1 x stationary)
+GAP_HORIZON_S = 0.1         # the gap grid ends at this long a gap: the DAQ has stopped, not paused
 DELAY_STEP_SAMPLES = 0.05   # grid of the extra output delay
 DELAY_CAP_SAMPLES = 1.0     # the delay search stops here: a whole sample late, the next one is due
-SETTLED = 0.01              # the recovery has settled when its excess is within 1 % of stationary
-BOUND_EPS = 1e-6            # regularisation of the settling bound (see GapAnalysis)
+DELAY_MARGIN = 2.0          # the answer budget is the design's delay plus the tolerated extra / this
+BOUND_EPS = 1e-6            # regularisation of the settling bound (see GrowthAnalysis)
 GAP_BLOCK = 64              # samples of the gap's trajectory and the recovery computed at once
-RECOVERY_CAP_SAMPLES = 1 << 20   # a recovery not bounded within the limit by then counts as lost
+RECOVERY_CAP_SAMPLES = 1 << 18   # a recovery not bounded by then counts as past the cap
+BRIDGES = ("hold",)         # the bridges stored (see "Bridges" above)
+OUTPUTS = ("deflection", "voltage")
+# the reference operating point ``gains show`` quotes the limit at: the spreads and headroom of
+# the simulated rig at 3300 N with 0.2 ue gauge noise (stacks 66-84 V, 0.14-0.19 V RMS; mode 1 a
+# few ue at the gauges against 3200 ue)
+REFERENCE = {"deflection_spread": 2.0e-6, "deflection_headroom": 3.0e-3,
+             "voltage_spread_v": 0.2, "voltage_headroom_v": 60.0}
+
+
+def gap_grid(cap: int) -> tuple[int, ...]:
+    """The gap lengths whose growth is stored: every sample to 8, then about 12 % apart, to
+    ``cap``."""
+    grid, n = [], 1
+    while n < cap:
+        grid.append(n)
+        n = n + 1 if n < 8 else max(n + 1, int(round(n * 1.12)))
+    grid.append(int(cap))
+    return tuple(grid)
+
+
+def gap_horizon_samples(sample_rate_hz: float) -> int:
+    """The gap grid's cap: GAP_HORIZON_S of samples (600 at 6000 Hz, 250 at 2500 Hz)."""
+    return max(int(round(GAP_HORIZON_S * sample_rate_hz)), 1)
 
 
 @dataclass(frozen=True)
 class RideThrough:
-    """The ride-through limits of a table's loop (see the module docstring); stored in the
-    table file under ``ride_through``. The scalars are the worst over the table's loads; the
-    ``*_per_load`` and plural fields hold one value per grid load (``table.loads_n``), the
-    engine's limits per grid interval being the lesser of its two ends (None: a table written
-    before them, whose scalars are all it has; its answer budget did not count the design's
-    own delay)."""
+    """A table's ride-through analysis (see the module docstring), stored under ``ride_through``.
+    ``growth`` [bridge, output, analysed load, grid gap]: BRIDGES x OUTPUTS x ``loads_n`` x
+    ``gap_grid_samples``. The delay part per grid load (``table.loads_n``)."""
 
-    growth_limit: float
-    margin: float
-    max_gap_samples: int
-    gap_limit_samples: int
-    gap_load_n: float                   # the worst load of the gap analysis
-    gap_cap_samples: int
-    max_extra_delay_samples: float
-    answer_budget_periods: float
-    delay_load_n: float | None          # the worst load of the delay analysis (None: the cap held)
+    confidence_sigma: float
+    gap_grid_samples: tuple[int, ...]
+    loads_n: tuple[float, ...]
+    rigs: tuple[str, ...]
+    growth: np.ndarray
+    max_extra_delay_samples_per_load: tuple[float, ...]
+    answer_budgets_periods: tuple[float, ...]
     delay_step_samples: float
     delay_cap_samples: float
     elapsed_s: float
-    max_gap_samples_per_load: tuple[int, ...] | None = None
-    gap_limits_samples: tuple[int, ...] | None = None
-    max_extra_delay_samples_per_load: tuple[float, ...] | None = None
-    answer_budgets_periods: tuple[float, ...] | None = None
+    criterion: str = "absolute"
 
-    FIELDS = ("growth_limit", "margin", "max_gap_samples", "gap_limit_samples", "gap_load_N",
-              "gap_cap_samples", "max_extra_delay_samples", "answer_budget_periods", "delay_load_N",
-              "delay_step_samples", "delay_cap_samples", "max_gap_samples_per_load", "gap_limits_samples",
-              "max_extra_delay_samples_per_load", "answer_budgets_periods", "elapsed_s")
-    PER_LOAD = ("max_gap_samples_per_load", "gap_limits_samples", "max_extra_delay_samples_per_load",
-                "answer_budgets_periods")
+    FIELDS = ("criterion", "confidence_sigma", "gap_grid_samples", "loads_N", "rigs", "growth",
+              "max_extra_delay_samples_per_load", "answer_budgets_periods", "delay_step_samples",
+              "delay_cap_samples", "elapsed_s")
 
     def __post_init__(self) -> None:
-        for name, kind in zip(self.PER_LOAD, (int, int, float, float), strict=True):
-            values = getattr(self, name)
-            if values is not None:
-                object.__setattr__(self, name, tuple(kind(v) for v in values))
+        object.__setattr__(self, "gap_grid_samples", tuple(int(v) for v in self.gap_grid_samples))
+        object.__setattr__(self, "loads_n", tuple(float(v) for v in self.loads_n))
+        object.__setattr__(self, "rigs", tuple(str(v) for v in self.rigs))
+        object.__setattr__(self, "growth", np.asarray(self.growth, dtype=float))
+        object.__setattr__(self, "max_extra_delay_samples_per_load",
+                           tuple(float(v) for v in self.max_extra_delay_samples_per_load))
+        object.__setattr__(self, "answer_budgets_periods", tuple(float(v) for v in self.answer_budgets_periods))
 
     @property
-    def per_load(self) -> bool:
-        """The limits are given per grid load (a table analysed since they are)."""
-        return self.max_gap_samples_per_load is not None
+    def gap_cap_samples(self) -> int:
+        return self.gap_grid_samples[-1]
 
     @property
-    def gap_capped(self) -> bool:
-        """No gap up to the search's cap was lost."""
-        return self.max_gap_samples >= self.gap_cap_samples
-
-    @property
-    def delay_capped(self) -> bool:
-        """The loop was stable with every extra delay up to the search's cap."""
-        return self.delay_load_n is None
+    def answer_budget_periods(self) -> float:
+        """The least answer budget over the grid loads."""
+        return min(self.answer_budgets_periods)
 
     def to_dict(self) -> dict[str, Any]:
-        d: dict[str, Any] = {
-            "growth_limit": float(self.growth_limit), "margin": float(self.margin),
-            "max_gap_samples": int(self.max_gap_samples), "gap_limit_samples": int(self.gap_limit_samples),
-            "gap_load_N": float(self.gap_load_n), "gap_cap_samples": int(self.gap_cap_samples),
-            "max_extra_delay_samples": float(self.max_extra_delay_samples),
-            "answer_budget_periods": float(self.answer_budget_periods),
-            "delay_load_N": None if self.delay_load_n is None else float(self.delay_load_n),
-            "delay_step_samples": float(self.delay_step_samples),
-            "delay_cap_samples": float(self.delay_cap_samples)}
-        for name in self.PER_LOAD:
-            values = getattr(self, name)
-            if values is not None:
-                d[name] = list(values)
-        d["elapsed_s"] = float(self.elapsed_s)
-        return d
+        return {"criterion": self.criterion, "confidence_sigma": float(self.confidence_sigma),
+                "gap_grid_samples": list(self.gap_grid_samples), "loads_N": list(self.loads_n),
+                "rigs": list(self.rigs),
+                "growth": {b: {o: [[float(round(v, 6)) for v in row] for row in self.growth[i, k]]
+                               for k, o in enumerate(OUTPUTS)} for i, b in enumerate(BRIDGES)},
+                "max_extra_delay_samples_per_load": list(self.max_extra_delay_samples_per_load),
+                "answer_budgets_periods": list(self.answer_budgets_periods),
+                "delay_step_samples": float(self.delay_step_samples),
+                "delay_cap_samples": float(self.delay_cap_samples), "elapsed_s": float(self.elapsed_s)}
 
-    def describe(self) -> str:
-        gap = (f"{self.max_gap_samples} samples or more (the search's cap)" if self.gap_capped
-               else f"{self.max_gap_samples} samples at {self.gap_load_n:g} N")
-        delay = (f"{self.max_extra_delay_samples:g} samples or more (the search's cap)" if self.delay_capped
-                 else f"{self.max_extra_delay_samples:g} samples at {self.delay_load_n:g} N")
-        text = (f"ride-through: longest gap survived {gap} (deflection RMS at most x{self.growth_limit:g}), "
-                f"limit {self.gap_limit_samples}; extra output delay tolerated {delay}, answer budget "
-                f"{self.answer_budget_periods:g} periods (margin {self.margin:g})")
-        if self.per_load:
-            text += (f"; per grid load gap limits {min(self.gap_limits_samples)} to "
-                     f"{max(self.gap_limits_samples)} samples, answer budgets "
-                     f"{min(self.answer_budgets_periods):g} to {max(self.answer_budgets_periods):g} periods")
-        return text + f"; {self.elapsed_s:.1f} s"
+    def interval_growth(self, grid_loads: Sequence[float]) -> np.ndarray:
+        """[interval, bridge, output, gap]: per interval [L_j, L_j+1] of ``grid_loads`` (the
+        last, L_last alone) the largest growth of every analysed load in it, ends included (the
+        engine's intervals are those between the analysed loads)."""
+        grid_loads = np.asarray(grid_loads, dtype=float)
+        loads = np.asarray(self.loads_n)
+        out = np.zeros((len(grid_loads), *self.growth.shape[:2], self.growth.shape[3]))
+        for j, low in enumerate(grid_loads):
+            high = grid_loads[min(j + 1, len(grid_loads) - 1)]
+            inside = (loads >= low - 1e-9) & (loads <= high + 1e-9)
+            if not inside.any():
+                raise ValueError(f"no analysed load in the grid interval [{low:g}, {high:g}] N")
+            out[j] = self.growth[:, :, inside, :].max(axis=2)
+        return out
+
+    def reference_limits(self, grid_loads: Sequence[float]) -> list[tuple[int, str]]:
+        """At each of ``grid_loads``: the live limit at the ``REFERENCE`` operating point in
+        samples, as the engine computes it there (rt/engine.py ``gap_allowed``, over the interval
+        of analysed loads the load starts), and the bridge."""
+        k = self.confidence_sigma
+        allowed_q = REFERENCE["deflection_headroom"] / (k * REFERENCE["deflection_spread"])
+        allowed_v = REFERENCE["voltage_headroom_v"] / (k * REFERENCE["voltage_spread_v"])
+        grid = np.asarray(self.gap_grid_samples, dtype=float)
+        breaks = np.unique(np.asarray(self.loads_n))
+        growth = self.interval_growth(breaks)
+        out = []
+        for load in grid_loads:
+            j = max(int(np.searchsorted(breaks, float(load), side="right")) - 1, 0)
+            flat = np.ascontiguousarray(growth[j]).ravel()
+            limits = [int(gap_allowed(flat, b * 2 * len(grid), grid, 0, len(grid), allowed_q, allowed_v))
+                      for b in range(len(BRIDGES))]
+            best = int(np.argmax(limits))
+            out.append((limits[best], BRIDGES[best]))
+        return out
+
+    def reference_text(self, grid_loads: Sequence[float], sample_rate_hz: float) -> str:
+        """What the reference operating point's limits are, and the limit per grid load in ms."""
+        rows = self.reference_limits(grid_loads)
+        cap = self.gap_cap_samples
+        parts = [f"{load:g} N {1e3 * n / sample_rate_hz:.1f}{'+' if n >= cap else ''}"
+                 for load, (n, _) in zip(grid_loads, rows, strict=True)]
+        return ("ride-through per load in ms at the reference operating point (mode 1 spread "
+                f"{REFERENCE['deflection_spread'] * 1e6:g} ue at the gauges, {REFERENCE['deflection_headroom'] * 1e6:g} "
+                f"ue to the strain limit; stacks {REFERENCE['voltage_spread_v']:g} V RMS, "
+                f"{REFERENCE['voltage_headroom_v']:g} V to their range; the engine measures its own): "
+                + ", ".join(parts) + f" ('+': the grid's end, {1e3 * cap / sample_rate_hz:g} ms)")
+
+    def describe(self, grid_loads: Sequence[float], sample_rate_hz: float) -> str:
+        rows = self.reference_limits(grid_loads)
+        ms = [1e3 * n / sample_rate_hz for n, _ in rows]
+        worst = int(np.argmin(ms))
+        rigs = " and ".join(self.rigs)
+        return (f"absolute: {self.confidence_sigma:g} sigma within the strain and voltage limits, on {rigs}; "
+                f"at the reference operating point {ms[0]:.1f} ms at {grid_loads[0]:g} N, the least "
+                f"{ms[worst]:.1f} ms at {grid_loads[worst]:g} N (bridge {rows[worst][1]}); answers up to "
+                f"{self.answer_budget_periods:.2f} to {max(self.answer_budgets_periods):.2f} periods after "
+                f"their sample")
 
 
-def limits(max_gap_samples: int, max_extra_delay_samples: float, margin: float = MARGIN,
-           design_delay_samples: float = 0.0) -> tuple[int, float]:
-    """(gap_limit_samples, answer_budget_periods), the engine's limits: floor(max_gap_samples /
-    margin), and the design's own output delay (an answer within it is what the design assumes)
-    plus max_extra_delay_samples / margin."""
-    return (int(math.floor(max_gap_samples / margin)),
-            float(design_delay_samples) + max_extra_delay_samples / margin)
+def answer_budget(design_delay_samples: float, max_extra_delay_samples: float) -> float:
+    """The engine's answer budget in periods: the design's own output delay (an answer within it
+    is what the design assumes) plus the tolerated extra delay over DELAY_MARGIN."""
+    return float(design_delay_samples) + max_extra_delay_samples / DELAY_MARGIN
 
 
 # ---------------------------------------------------------------------------------------------
@@ -229,24 +268,28 @@ class GapLoop:
 
     normal: z <- M z + W w;  a missing sample: [z; y_held] <- G [z; y_held] + [W; 0] w, entered
     from the last normal sample by [z; y_held] = [M; Cz] z + [W; 0] w (y_held: that sample's
-    strains, which a table without a prediction feeds its compensator); ``deflection`` the row
-    of z giving mode 1's modal displacement."""
+    strains, which a table without a prediction feeds its compensator); ``outputs`` the rows of
+    z giving mode 1's modal displacement and the plane's two applied support forces."""
 
     m: np.ndarray
     g: np.ndarray
     entry: np.ndarray
     w: np.ndarray
-    deflection: np.ndarray
+    outputs: np.ndarray
 
     @property
     def n(self) -> int:
         return self.m.shape[0]
 
 
-def gap_matrix(plant: DelayedZOH, comp: CompensatorPoint) -> np.ndarray:
+def gap_matrix(plant: DelayedZOH, comp: CompensatorPoint, bridge: str = "predict",
+               force_gain: float = 1.0) -> np.ndarray:
     """The loop during a missing sample, on [z; y_held] (see the module docstring): the plant
-    runs on the force of the last answer (the newest entry of the force buffer), the compensator
-    predicts, the integral and the held strains stay. ``comp`` of one plane."""
+    runs on the force of the last answer (the newest entry of the force buffer) times the rig's
+    stack gain, the compensator predicts (``predict``) or holds (``hold``), the integral and the
+    held strains stay. ``comp`` of one plane."""
+    if bridge not in BRIDGES:
+        raise ValueError(f"bridge {bridge!r}: expected one of {BRIDGES}")
     n = plant.ad.shape[0]
     whole = plant.whole
     nb = 2 * (whole + 1)
@@ -257,9 +300,9 @@ def gap_matrix(plant: DelayedZOH, comp: CompensatorPoint) -> np.ndarray:
     g[:n, :n] = plant.ad
 
     def force(k_back: int, matrix: np.ndarray) -> None:
-        """x_k+1 += matrix u_k-k_back, u_k = the held force (buffer entry u_k-1)."""
+        """x_k+1 += g matrix u_k-k_back, u_k = the held force (buffer entry u_k-1)."""
         col = ib + 2 * max(k_back - 1, 0)
-        g[:n, col:col + 2] += matrix
+        g[:n, col:col + 2] += force_gain * matrix
 
     force(whole, plant.b_now)
     if plant.fraction > 0.0:
@@ -268,12 +311,15 @@ def gap_matrix(plant: DelayedZOH, comp: CompensatorPoint) -> np.ndarray:
     g[ib:ib + 2, ib:ib + 2] = np.eye(2)
     for j in range(1, whole + 1):
         g[ib + 2 * j:ib + 2 * j + 2, ib + 2 * (j - 1):ib + 2 * j] = np.eye(2)
-    g[ic:ii, ic:ii] = comp.a
-    g[ic:ii, ib:ib + 2] = comp.e
-    if comp.predict is not None:
-        g[ic:ii, ic:ii] += comp.b @ comp.predict
+    if bridge == "hold":
+        g[ic:ii, ic:ii] = np.eye(nc)
     else:
-        g[ic:ii, iy:iy + 2] = comp.b
+        g[ic:ii, ic:ii] = comp.a
+        g[ic:ii, ib:ib + 2] = comp.e
+        if comp.predict is not None:
+            g[ic:ii, ic:ii] += comp.b @ comp.predict
+        else:
+            g[ic:ii, iy:iy + 2] = comp.b
     g[ii:ii + 2, ii:ii + 2] = np.eye(2)
     g[iy:, iy:] = np.eye(2)
     return g
@@ -297,39 +343,38 @@ def mode1_row(model: FEModel, rig: RigPlane, load_n: float, n_plant: int) -> np.
     return row
 
 
-def gap_loop(model: FEModel, rig: RigPlane, load_n: float, point: CompensatorPoint, h: np.ndarray,
-             plane_states: Sequence[int], period_s: float) -> GapLoop:
-    """The matrices of the nominal loop at ``load_n`` with the compensator ``point`` of the
-    whole beam (its block of the rig's plane is taken)."""
+def gap_loop(rig: RigPlane, load_n: float, point: CompensatorPoint, h: np.ndarray,
+             plane_states: Sequence[int], period_s: float, bridge: str = "predict") -> GapLoop:
+    """The matrices of ``rig``'s loop at ``load_n`` with the compensator ``point`` of the whole
+    beam (its block of the rig's plane is taken), bridging a gap by ``bridge``."""
     plant, c = rig.sampled(load_n)
     io = list(PLANE_CHANNELS[rig.plane])
     part = point.plane(list(plane_states), rig.plane)
-    m = closed_loop_matrix(plant, c, part, h[np.ix_(io, io)], period_s)
-    g = gap_matrix(plant, part)
+    m = closed_loop_matrix(plant, c, part, h[np.ix_(io, io)], period_s, rig.force_gain)
+    g = gap_matrix(plant, part, bridge, rig.force_gain)
     n = plant.ad.shape[0]
     total = m.shape[0]
     cz = np.zeros((2, total))
     cz[:, :n] = c
     w = np.zeros((total, 2))
     w[:n] = plant.b_now + plant.b_before
-    deflection = np.zeros(total)
-    deflection[:n] = mode1_row(model, rig, load_n, n)
-    return GapLoop(m=m, g=g, entry=np.vstack([m, cz]), w=w, deflection=deflection)
+    outputs = np.zeros((3, total))
+    outputs[0, :n] = mode1_row(rig.model, rig, load_n, n)
+    outputs[1, n] = outputs[2, n + 1] = 1.0         # the newest applied forces (supports A, B)
+    return GapLoop(m=m, g=g, entry=np.vstack([m, cz]), w=w, outputs=outputs)
 
 
 # ---------------------------------------------------------------------------------------------
-# the gap at one load
+# the growth at one load
 
 
-class GapAnalysis:
-    """The deflection's variance through a gap of N samples and the recovery after it, at one
-    load (see the module docstring). States are scaled by their stationary RMS: in SI they span
-    ten decades, where the Lyapunov solve keeps three digits (``scale``: a neighbouring load's
+class GrowthAnalysis:
+    """The outputs' variance through a gap of N samples and the recovery after it, at one load
+    (see the module docstring). States are scaled by their stationary RMS: in SI they span ten
+    decades, where the Lyapunov solve keeps three digits (``scale``: a neighbouring load's
     ``rms``, near enough, instead of a Lyapunov solve for it)."""
 
-    def __init__(self, loop: GapLoop, growth_limit: float = GROWTH_LIMIT,
-                 scale: np.ndarray | None = None) -> None:
-        self.growth_limit = growth_limit
+    def __init__(self, loop: GapLoop, scale: np.ndarray | None = None) -> None:
         n = loop.n
         if scale is None or scale.shape != (n,):
             scale = np.sqrt(np.abs(np.diag(_Stein(loop.m).solve(loop.w @ loop.w.T))))
@@ -343,15 +388,12 @@ class GapAnalysis:
         # strains): the settling bound uses Pi = Sigma + eps Y (Y = M Y M^T + I), for which
         # Pi - M Pi M^T = W W^T + eps I >= 0 too; eps 1e-6 of the states' stationary variance
         pi = stein.solve(ww + BOUND_EPS * np.eye(n))
-        self._bound_factor = sla.cholesky(pi, lower=True)
-        # the states' stationary RMS: a neighbouring load's analysis may take it as its scale
-        # (``scale``), which saves a Lyapunov solve and serves as well
+        self._bound_inverse = sla.solve_triangular(sla.cholesky(pi, lower=True), np.eye(n), lower=True)
         self.rms = scale * np.sqrt(np.abs(np.diag(self.sigma)))
-        self.out = loop.deflection * scale
-        self.variance = float(self.out @ self.sigma @ self.out)
-        self.bound_variance = float(self.out @ pi @ self.out)
-        self.limit = growth_limit**2 * self.variance
-        # [z; y_held] at the gap's first missing sample: after the last normal step
+        self.out = loop.outputs * scale[None, :]
+        self.k = self.out.shape[0]
+        self.variance = np.einsum("ij,jk,ik->i", self.out, self.sigma, self.out)
+        self.bound_variance = np.einsum("ij,jk,ik->i", self.out, pi, self.out)
         entry = loop.entry * scale[None, :]
         wa = np.vstack([loop.w, np.zeros((2, 2))])
         start = entry @ self.sigma @ entry.T + wa @ wa.T
@@ -359,71 +401,62 @@ class GapAnalysis:
         held[held <= 1e-300] = 1.0
         s_aug = np.concatenate([scale, held])
         self.start = _sym(start / s_aug[:, None] / s_aug[None, :])
+        self._s_aug = s_aug
         self.g = loop.g / s_aug[:, None] * s_aug[None, :]
         self.wa = np.vstack([self.w, np.zeros((2, 2))])
-        self._gap_var = np.zeros(0)        # the deflection's variance after j missing samples
-        self._gap_top = np.zeros(0)        # and its largest up to j
-        self._gap_block: np.ndarray | None = None
+        self._out_aug = np.hstack([self.out, np.zeros((self.k, 2))])
+        self._gap_var = np.zeros((0, self.k))      # the outputs' variance after j missing samples
+        self._gap_rows: np.ndarray | None = None
         self._gap_step: np.ndarray | None = None
-        self._gap_noise = 0.0
-        self._block: np.ndarray | None = None         # out M^m, m < GAP_BLOCK
+        self._gap_noise = np.zeros(self.k)
+        self._block: np.ndarray | None = None         # out M^m, m < GAP_BLOCK, [m, output, state]
         self._block_step: np.ndarray | None = None    # M^GAP_BLOCK
         self._powers: list[tuple[np.ndarray, np.ndarray]] = []   # (G^2^b, sum_{i<2^b} G^i W G^iT)
-        self._tested: dict[int, bool] = {}     # survives(N) of the gaps tested
-        self._after: dict[int, np.ndarray] = {}   # covariance of [z; y_held] after N missing samples
+        self._after_n = 0
+        self._after_cov = self.start
 
-    # -- the gap: one trajectory for every N -------------------------------------------------
+    def bridged(self, g: np.ndarray) -> GrowthAnalysis:
+        """The same loop with another gap matrix ``g`` (another bridge, ``gap_matrix``): the
+        stationary state and the recovery's matrices are shared, the gap's computed anew."""
+        other = object.__new__(GrowthAnalysis)
+        other.__dict__.update(self.__dict__)
+        other.g = g / self._s_aug[:, None] * self._s_aug[None, :]
+        other._gap_var = np.zeros((0, self.k))
+        other._gap_rows = other._gap_step = None
+        other._gap_noise = np.zeros(self.k)
+        other._powers = []
+        other._after_n, other._after_cov = 0, self.start
+        return other
+
     def _extend_gap(self, j: int) -> None:
-        """The gap's trajectory up to j missing samples: the rows out G^i in blocks of
-        GAP_BLOCK (the next block is this one times G^GAP_BLOCK)."""
+        """The gap's trajectory up to j missing samples: the rows out G^i in blocks of GAP_BLOCK
+        (the next block is this one times G^GAP_BLOCK)."""
         while len(self._gap_var) <= j:
-            if self._gap_block is None:
-                rows = [np.concatenate([self.out, np.zeros(2)])]
+            if self._gap_rows is None:
+                rows = [self._out_aug]
                 for _ in range(GAP_BLOCK - 1):
                     rows.append(rows[-1] @ self.g)
-                self._gap_block = np.array(rows)
+                self._gap_rows = np.concatenate(rows)
                 self._gap_step = np.linalg.matrix_power(self.g, GAP_BLOCK)
             else:
-                self._gap_block = self._gap_block @ self._gap_step
-            rows = self._gap_block
+                self._gap_rows = self._gap_rows @ self._gap_step
+            rows = self._gap_rows
             with np.errstate(over="ignore", invalid="ignore"):
-                noise = np.cumsum(np.sum((rows @ self.wa) ** 2, axis=1))
-                values = np.sum((rows @ self.start) * rows, axis=1)
-                values += self._gap_noise + np.concatenate([[0.0], noise[:-1]])
-            self._gap_noise += noise[-1]
+                noise = np.sum((rows @ self.wa) ** 2, axis=1).reshape(GAP_BLOCK, self.k)
+                values = np.sum((rows @ self.start) * rows, axis=1).reshape(GAP_BLOCK, self.k)
+                cum = np.cumsum(noise, axis=0)
+                values += self._gap_noise + np.vstack([np.zeros((1, self.k)), cum[:-1]])
+            self._gap_noise = self._gap_noise + cum[-1]
             values[~np.isfinite(values)] = np.inf
-            self._gap_var = np.concatenate([self._gap_var, values])
-        self._gap_top = np.maximum.accumulate(self._gap_var)
+            self._gap_var = np.vstack([self._gap_var, values])
 
-    def gap_variance(self, j: int) -> float:
-        """The deflection's variance after j missing samples (0: at the first of them)."""
-        self._extend_gap(j)
-        return float(self._gap_var[j])
-
-    def gap_peak(self, n_gap: int) -> float:
-        """The deflection's largest variance during a gap of ``n_gap`` samples."""
-        self._extend_gap(n_gap)
-        return float(self._gap_top[n_gap])
-
-    def first_lost_in_gap(self, cap: int) -> int | None:
-        """The least j <= cap after which many missing samples the deflection's RMS is past the
-        limit already during the gap, or None."""
-        j = GAP_BLOCK
-        while True:
-            self._extend_gap(min(j, cap))
-            lost = np.flatnonzero(self._gap_var[:cap + 1] > self.limit)
-            if lost.size:
-                return int(lost[0])
-            if j >= cap:
-                return None
-            j *= 2
-
-    def after_gap(self, n_gap: int) -> np.ndarray:
-        """Covariance of z after ``n_gap`` missing samples: from the longest gap's covariance
-        computed so far that is not longer (or the gap's start), by binary powers of G."""
-        base = max((n for n in self._after if n <= n_gap), default=0)
-        cov = self._after[base] if base else self.start
-        k, b = n_gap - base, 0
+    def _after_gap(self, n_gap: int) -> np.ndarray:
+        """Covariance of z after ``n_gap`` missing samples (n_gap not less than the last asked
+        for): from the last one by binary powers of G."""
+        if n_gap < self._after_n:
+            raise ValueError("the gaps are analysed in increasing length")
+        cov = self._after_cov
+        k, b = n_gap - self._after_n, 0
         while (1 << b) <= k:
             if len(self._powers) <= b:
                 if b == 0:
@@ -436,133 +469,73 @@ class GapAnalysis:
                 cov = p @ cov @ p.T + s
             b += 1
         cov = _sym(cov)
-        if n_gap:
-            self._after[n_gap] = cov
+        self._after_n, self._after_cov = n_gap, cov
         return cov[:-2, :-2]
 
-    # -- the recovery ------------------------------------------------------------------------
-    def _excess_bound(self, delta: np.ndarray) -> float:
-        """The least alpha >= 0 with delta <= alpha Pi."""
-        lf = self._bound_factor
-        x = sla.solve_triangular(lf, delta, lower=True)
-        x = sla.solve_triangular(lf, x.T, lower=True)
-        return max(float(np.linalg.eigvalsh(_sym(x))[-1]), 0.0)
+    def _excess_bound(self, delta: np.ndarray, enough: float) -> float:
+        """An alpha >= 0 with delta <= alpha Pi: the least (the largest eigenvalue of
+        L^-1 delta L^-T, Pi = L L^T), or, where it already is at most ``enough``, the Frobenius
+        norm of that matrix, which is not less."""
+        x = _sym(self._bound_inverse @ delta @ self._bound_inverse.T)
+        frobenius = float(np.sqrt(np.sum(x * x)))
+        if frobenius <= enough:
+            return frobenius
+        return max(float(np.linalg.eigvalsh(x)[-1]), 0.0)
 
-    def recovery(self, delta: np.ndarray, done: Callable[[float, float], bool],
-                 max_samples: int = RECOVERY_CAP_SAMPLES) -> tuple[np.ndarray, float]:
-        """The deflection's variance m = 0, 1, ... samples into the recovery from the excess
-        ``delta`` over stationary, sample by sample (in blocks of GAP_BLOCK) until, at m = 64,
-        128, 256, ..., ``done(largest so far, bound)``, ``bound`` the largest variance any sample
-        from m on can have (or the cap). (variances, bound)."""
+    def _recovery_peak(self, delta: np.ndarray, floor: np.ndarray) -> np.ndarray:
+        """The largest variance of each output any sample of the recovery from the excess
+        ``delta`` can have: followed in blocks of GAP_BLOCK until, at m = 64, 128, 256, ..., the
+        bound on every later sample is within max(largest so far, ``floor``)."""
         if self._block is None:
             rows = [self.out]
             for _ in range(GAP_BLOCK - 1):
                 rows.append(rows[-1] @ self.m)
-            self._block = np.array(rows)
+            self._block = np.concatenate(rows)
             self._block_step = np.linalg.matrix_power(self.m, GAP_BLOCK)
         rows = self._block
-        power = self._block_step                    # M^m at the next checkpoint m
-        values: list[np.ndarray] = []
+        power = self._block_step
+        top = np.zeros(self.k)
         m, checkpoint = 0, GAP_BLOCK
         while True:
-            values.append(self.variance + np.sum((rows @ delta) * rows, axis=1))
+            with np.errstate(over="ignore", invalid="ignore"):
+                v = self.variance + np.sum((rows @ delta) * rows, axis=1).reshape(GAP_BLOCK, self.k).max(axis=0)
+            if not np.all(np.isfinite(v)):
+                return np.full(self.k, np.inf)
+            top = np.maximum(top, v)
             m += GAP_BLOCK
             if m == checkpoint:
                 d = _sym(power @ delta @ power.T)
                 if not np.all(np.isfinite(d)):
-                    return np.concatenate(values), math.inf
-                bound = self.variance + self._excess_bound(d) * self.bound_variance
-                top = float(max(v.max() for v in values))
-                if done(top, bound) or m >= max_samples:
-                    return np.concatenate(values), bound
+                    return np.full(self.k, np.inf)
+                target = np.maximum(top, floor)
+                enough = float(np.min((target - self.variance) / self.bound_variance))
+                bound = self.variance + self._excess_bound(d, enough) * self.bound_variance
+                if np.all(bound <= target):
+                    return np.maximum(top, bound)
+                if m >= RECOVERY_CAP_SAMPLES:
+                    return np.full(self.k, np.inf)
                 checkpoint *= 2
                 power = power @ power
             rows = rows @ self._block_step
 
-    def survives(self, n_gap: int) -> bool:
-        """The deflection's RMS stays within growth_limit x stationary at every sample of a gap
-        of ``n_gap`` samples and of the whole recovery after it."""
-        if n_gap <= 0:
-            return True
-        if n_gap not in self._tested:
-            self._tested[n_gap] = self._survives(n_gap)
-        return self._tested[n_gap]
-
-    def _survives(self, n_gap: int) -> bool:
-        if self.gap_peak(n_gap) > self.limit:
-            return False
-        delta = self.after_gap(n_gap) - self.sigma
-        if not np.all(np.isfinite(delta)):
-            return False
-        values, bound = self.recovery(delta, lambda top, bound: top > self.limit or bound <= self.limit)
-        return bool(values.max() <= self.limit and bound <= self.limit)
-
-    def ratios(self, n_gap: int) -> tuple[np.ndarray, float]:
-        """The deflection's RMS over its stationary RMS at every sample from the gap's first
-        missing sample, followed until no later sample can exceed the largest so far or has
-        settled within SETTLED of stationary, and the most that any later sample can have."""
-        self._extend_gap(n_gap)
-        gap = self._gap_var[:n_gap + 1].copy()
-        delta = self.after_gap(n_gap) - self.sigma
-        floor = max(float(gap.max()), (1.0 + SETTLED) ** 2 * self.variance)
-        values, bound = self.recovery(delta, lambda top, bound: bound <= max(top, floor))
-        ratio = np.sqrt(np.concatenate([gap, values[1:]]) / self.variance)
-        return ratio, math.sqrt(bound / self.variance)
-
-    def max_gap(self, cap: int, below: int | None = None, start: int | None = None) -> int:
-        """The longest gap survived, at most ``cap``: a gap N survived with N + 1 lost (or the
-        cap), by doubling and bisection, or with ``start`` (a guess, e.g. a neighbouring load's
-        answer) by galloping from it (up while survived: start + 1, + 2, + 4, ...; down while
-        lost) and bisection, which costs about 2 log2 of the distance from the guess.
-
-        Survival need not fall with the gap's length near the limit (the recovery's peak
-        follows the phase of the loop's oscillation at the gap's end; at 0 N in the shipped LQG
-        gaps of 522 to 530 samples are lost every other one, 531 to 546 survived, 548 and 553
-        survived among lost ones): the answer is then one edge of that band, a gap tested and
-        survived with the next one lost, as is every gap tested below it.
-
-        With ``below``: only whether it is less than that matters; if the gap of ``below``
-        samples is survived, ``below`` is returned."""
-        lost = self.first_lost_in_gap(cap if below is None else below)
-        hi = cap + 1 if lost is None else lost          # lost (or beyond the cap)
-        if below is not None:
-            if below < hi and self.survives(below):
-                return below
-            hi = min(hi, below)
-            lo = 0
-        elif start is not None:
-            lo, hi = self._gallop(min(max(int(start), 0), hi - 1), hi)
-        else:
-            lo, n = 0, 1
-            while n < hi and self.survives(n):
-                lo, n = n, 2 * n
-            hi = min(hi, n)
-        while hi - lo > 1:
-            mid = (lo + hi) // 2
-            if self.survives(mid):
-                lo = mid
-            else:
-                hi = mid
-        return min(lo, cap)
-
-    def _gallop(self, start: int, hi: int) -> tuple[int, int]:
-        """(lo, hi): survived (or 0) and lost (or beyond the cap), found from ``start`` < hi by
-        growing steps, for the bisection between them."""
-        if self.survives(start):
-            lo, step = start, 1
-            while lo + 1 < hi:
-                n = min(lo + step, hi - 1)
-                if not self.survives(n):
-                    return lo, n
-                lo, step = n, 2 * step
-            return lo, hi
-        hi, step = start, 1
-        while hi > 1:
-            n = max(hi - step, 0)
-            if n == 0 or self.survives(n):
-                return n, hi
-            hi, step = n, 2 * step
-        return 0, hi
+    def growth(self, grid: Sequence[int]) -> np.ndarray:
+        """[output, gap of ``grid``]: the largest RMS of each output at any sample of the gap and
+        its recovery over its stationary RMS, non-decreasing in the gap's length; past
+        GROWTH_CAP the cap."""
+        out = np.full((self.k, len(grid)), GROWTH_CAP)
+        floor = SETTLED**2 * self.variance
+        top = np.zeros(self.k)
+        for i, n_gap in enumerate(grid):
+            self._extend_gap(n_gap)
+            gap_peak = self._gap_var[:n_gap + 1].max(axis=0)
+            delta = self._after_gap(n_gap) - self.sigma
+            peak = np.maximum(gap_peak, self._recovery_peak(delta, np.maximum(floor, gap_peak)))
+            top = np.maximum(top, np.sqrt(peak / self.variance))
+            if not np.all(np.isfinite(top)) or top.max() >= GROWTH_CAP:
+                out[:, i] = np.minimum(np.where(np.isfinite(top), top, GROWTH_CAP), GROWTH_CAP)
+                break
+            out[:, i] = top
+        return out
 
 
 class _DelayedPlant:
@@ -649,11 +622,6 @@ def steps(plan: Plan) -> int:
     return 2 * len(plan)
 
 
-def gap_horizon_samples(sample_rate_hz: float) -> int:
-    """The gap search's cap: GAP_HORIZON_S of samples (600 at 6000 Hz, 250 at 2500 Hz)."""
-    return max(int(round(GAP_HORIZON_S * sample_rate_hz)), 1)
-
-
 def _places(plan: Plan, loads: np.ndarray) -> tuple[list[int], list[tuple[int, int, int]]]:
     """Where the check loads of ``plan`` sit on the grid ``loads``: the plan entry of each grid
     load (its own matrices, as the settled schedule has them there), and every other entry as
@@ -686,28 +654,51 @@ def _fold(values: list, sources: list[float], j: int, k: int, value, load: float
     values[end], sources[end] = value, load
 
 
-def _worst(values: list, sources: list[float]) -> tuple[Any, float]:
-    """The least of ``values`` and the load it was found at (the highest of equal ones)."""
-    least = min(values)
-    return least, max(src for v, src in zip(values, sources, strict=True) if v == least)
+def _stable(matrix: np.ndarray) -> bool:
+    return bool(np.all(np.isfinite(matrix))) and float(np.max(np.abs(np.linalg.eigvals(matrix)))) < 1.0
 
 
-def analyse(model: FEModel, rig: RigPlane, table, plan: Plan, progress: BuildProgress | None = None,
-            done: int = 0, total: int | None = None, *, growth_limit: float = GROWTH_LIMIT,
-            margin: float = MARGIN, gap_cap: int | None = None,
-            delay_step: float = DELAY_STEP_SAMPLES, delay_cap: float = DELAY_CAP_SAMPLES) -> RideThrough:
-    """The ride-through limits of ``table``'s loop on ``rig`` (the nominal rig) per load of its
-    grid, covering every load of its closed-loop check ``plan`` ((load, gain load, matrices), as
-    ``gains.build.check_plan`` gives); see the module docstring. ``gap_cap``: the gap search's
-    cap (default ``gap_horizon_samples`` of the rig's rate)."""
+def load_growth(rigs: Sequence[RigPlane], load: float, point: CompensatorPoint, table, grid: Sequence[int],
+                scales: dict | None = None) -> np.ndarray:
+    """[bridge, output, gap of ``grid``] at ``load``: the largest growth over the ``rigs`` whose
+    loop is stable there (the first, the nominal rig, must be); ``scales`` keeps each rig's
+    stationary RMS for the next load's analysis."""
+    comp = table.compensator
+    out = np.zeros((len(BRIDGES), len(OUTPUTS), len(grid)))
+    scales = {} if scales is None else scales
+    for r, rig in enumerate(rigs):
+        states = comp.plane_states[rig.plane]
+        loop = gap_loop(rig, load, point, comp.h, states, comp.period_s, BRIDGES[0])
+        if not _stable(loop.m):
+            if r == 0:
+                raise ValueError(f"the nominal loop is unstable at {load:g} N: no ride-through")
+            continue
+        first = GrowthAnalysis(loop, scales.get(r))
+        scales[r] = first.rms
+        for b, bridge in enumerate(BRIDGES):
+            analysis = first if b == 0 else first.bridged(gap_matrix(
+                rig.sampled(load)[0], point.plane(list(states), rig.plane), bridge, rig.force_gain))
+            g = analysis.growth(grid)
+            out[b, 0] = np.maximum(out[b, 0], g[0])
+            out[b, 1] = np.maximum(out[b, 1], g[1:].max(axis=0))
+    return out
+
+
+def analyse(rigs: Sequence[RigPlane], table, plan: Plan, progress: BuildProgress | None = None,
+            done: int = 0, total: int | None = None, *, rig_names: Sequence[str] | None = None,
+            gap_cap: int | None = None, delay_step: float = DELAY_STEP_SAMPLES,
+            delay_cap: float = DELAY_CAP_SAMPLES) -> RideThrough:
+    """The ride-through analysis of ``table``'s loop on ``rigs`` (the nominal rig first, then
+    e.g. the robust check's worst) at every load of its closed-loop check ``plan`` ((load, gain
+    load, matrices), as ``gains.build.check_plan`` gives); see the module docstring.
+    ``gap_cap``: the gap grid's end (default ``gap_horizon_samples`` of the rig's rate)."""
     started = time.perf_counter()
     total = total if total is not None else done + steps(plan)
+    nominal = rigs[0]
     comp = table.compensator
-    states = comp.plane_states[rig.plane]
+    states = comp.plane_states[nominal.plane]
     loads = np.asarray(table.loads_n, dtype=float)
-    own, others = _places(plan, loads)
-    top_down = sorted(range(len(loads)), key=lambda i: -loads[i])
-    cap = gap_horizon_samples(rig.sample_rate_hz) if gap_cap is None else int(gap_cap)
+    grid = gap_grid(gap_horizon_samples(nominal.sample_rate_hz) if gap_cap is None else int(gap_cap))
     step = done
 
     def tick(label: str) -> None:
@@ -716,43 +707,28 @@ def analyse(model: FEModel, rig: RigPlane, table, plan: Plan, progress: BuildPro
         if progress:
             progress(step, total, label)
 
-    scales: dict[int, np.ndarray] = {}      # the states' stationary RMS at the grid loads
-
-    def gap_analysis(e: int, scale: np.ndarray | None) -> GapAnalysis:
+    order = sorted(range(len(plan)), key=lambda e: -plan[e][0])
+    growth = np.zeros((len(BRIDGES), len(OUTPUTS), len(plan), len(grid)))
+    scales: dict = {}
+    for e in order:
         load, _, point = plan[e]
-        return GapAnalysis(gap_loop(model, rig, load, point, comp.h, states, comp.period_s), growth_limit,
-                           scale)
-
-    # the gap at every grid load, from the top down, each search started from the answer above
-    gaps = [0] * len(loads)
-    gap_sources = [float(x) for x in loads]
-    above, scale = None, None
-    for i in top_down:
-        analysis = gap_analysis(own[i], scale)
-        gaps[i] = above = analysis.max_gap(cap, start=above)
-        scales[i] = scale = analysis.rms
-        tick(f"ride-through gap {loads[i]:7.1f} N")
-    # the other check loads, each tested at its interval's limit (the lesser end)
-    for e, j, k in others:
-        bound = min(gaps[j], gaps[k])
-        if bound > 0:
-            found = gap_analysis(e, scales[j]).max_gap(cap, below=bound)
-            if found < bound:
-                _fold(gaps, gap_sources, j, k, found, plan[e][0])
-        tick(f"ride-through gap {plan[e][0]:7.1f} N")
-
+        growth[:, :, e] = load_growth(rigs, load, point, table, grid, scales)
+        tick(f"ride-through gap {load:7.1f} N")
+    # the delay: on the nominal rig, every grid load walked, the other check loads at their limit
+    own, others = _places(plan, loads)
+    top_down = sorted(range(len(loads)), key=lambda i: -loads[i])
     count = int(round(delay_cap / delay_step))
-    grid = [round(k * delay_step, 10) for k in range(count + 1)]
+    dgrid = [round(k * delay_step, 10) for k in range(count + 1)]
     plants: dict[int, _DelayedPlant] = {}
 
     def stable(e: int, k: int) -> bool:
         load, _, point = plan[e]
         if e not in plants:
-            plants[e] = _DelayedPlant(rig, load, delay_step)
-        plant, c = plants[e].sampled(round(rig.chain.delay_samples + grid[k], 10))
-        io = list(PLANE_CHANNELS[rig.plane])
-        matrix = closed_loop_matrix(plant, c, point.plane(list(states), rig.plane), comp.h[np.ix_(io, io)],
-                                    comp.period_s, rig.force_gain)
+            plants[e] = _DelayedPlant(nominal, load, delay_step)
+        plant, c = plants[e].sampled(round(nominal.chain.delay_samples + dgrid[k], 10))
+        io = list(PLANE_CHANNELS[nominal.plane])
+        matrix = closed_loop_matrix(plant, c, point.plane(list(states), nominal.plane), comp.h[np.ix_(io, io)],
+                                    comp.period_s, nominal.force_gain)
         return float(np.max(np.abs(np.linalg.eigvals(matrix)))) < 1.0
 
     def walk(e: int, top: int) -> int:
@@ -767,30 +743,22 @@ def analyse(model: FEModel, rig: RigPlane, table, plan: Plan, progress: BuildPro
         return top
 
     delays = [0] * len(loads)          # grid steps
-    delay_sources = [float(x) for x in loads]
+    sources = [float(x) for x in loads]
     for i in top_down:
         delays[i] = walk(own[i], count)
         tick(f"ride-through delay {loads[i]:7.1f} N")
-    # the other check loads at their interval's limit; below it only if unstable there
     for e, j, k in others:
         bound = min(delays[j], delays[k])
         if bound > 0 and not stable(e, bound):
-            _fold(delays, delay_sources, j, k, walk(e, bound - 1), plan[e][0])
+            _fold(delays, sources, j, k, walk(e, bound - 1), plan[e][0])
         plants.pop(e, None)
         tick(f"ride-through delay {plan[e][0]:7.1f} N")
-
     design_delay = float(table.design.io.delay_samples)
-    per_load = [limits(g, grid[k], margin, design_delay) for g, k in zip(gaps, delays, strict=True)]
-    best_gap, gap_load = _worst(gaps, gap_sources)
-    best_k, delay_load = _worst(delays, delay_sources)
-    gap_limit, budget = limits(best_gap, grid[best_k], margin, design_delay)
-    return RideThrough(growth_limit=growth_limit, margin=margin, max_gap_samples=int(best_gap),
-                       gap_limit_samples=gap_limit, gap_load_n=float(gap_load), gap_cap_samples=cap,
-                       max_extra_delay_samples=grid[best_k], answer_budget_periods=budget,
-                       delay_load_n=None if best_k == count else float(delay_load),
+    names = tuple(rig_names) if rig_names is not None else ("the nominal rig",) + tuple(
+        f"rig {i}" for i in range(1, len(rigs)))
+    return RideThrough(confidence_sigma=CONFIDENCE_SIGMA, gap_grid_samples=grid,
+                       loads_n=tuple(float(p[0]) for p in plan), rigs=names, growth=growth,
+                       max_extra_delay_samples_per_load=tuple(dgrid[k] for k in delays),
+                       answer_budgets_periods=tuple(answer_budget(design_delay, dgrid[k]) for k in delays),
                        delay_step_samples=delay_step, delay_cap_samples=delay_cap,
-                       elapsed_s=round(time.perf_counter() - started, 2),
-                       max_gap_samples_per_load=tuple(int(g) for g in gaps),
-                       gap_limits_samples=tuple(lim for lim, _ in per_load),
-                       max_extra_delay_samples_per_load=tuple(grid[k] for k in delays),
-                       answer_budgets_periods=tuple(b for _, b in per_load))
+                       elapsed_s=round(time.perf_counter() - started, 2))

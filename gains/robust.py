@@ -399,7 +399,8 @@ def find_onset(plane: RigPlane, table: GainTable, schedule: GainSchedule, loads:
     return None, previous, largest[1], largest[0], loop.points, tuple(walked), tuple(growths)
 
 
-def _plane(rig: Rig) -> RigPlane:
+def rig_plane(rig: Rig) -> RigPlane:
+    """The plane the checks analyse of ``rig`` (its own FE model, I/O chain, rate, stack gain)."""
     return RigPlane(build_model(rig.params), rig.chain, rig.sample_rate_hz, rig.force_gain)
 
 
@@ -412,7 +413,7 @@ def evaluate(table: GainTable, schedule: GainSchedule, box: Box, values: Mapping
     by default the box's rig of ``values``."""
     if mode not in MODES:
         raise ValueError(f"mode {mode!r}: expected one of {', '.join(MODES)}")
-    plane = _plane(rig if rig is not None else rig_of(table, box, values))
+    plane = rig_plane(rig if rig is not None else rig_of(table, box, values))
     critical = plane.critical_load_n
     values = {k: float(v) for k, v in values.items()}
     if mode == "margin":

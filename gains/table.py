@@ -48,7 +48,7 @@ from beamctl.config.schema import ConfigError, read_yaml
 from beamctl.gains.compensator import MATRICES, Compensator
 from beamctl.gains.discrete import LoopCheck
 from beamctl.gains.lqr import N_INPUTS, N_STATES, Weights
-from beamctl.gains.ridethrough import RideThrough, limits
+from beamctl.gains.ridethrough import BRIDGES, DELAY_MARGIN, OUTPUTS, RideThrough, answer_budget
 from beamctl.models.iochain import IOChain, io_chain
 from beamctl.models.params import ModelParameters, parameters_from_dict
 
@@ -565,27 +565,28 @@ def _robust(data: dict, source: str) -> dict[str, Any]:
 
 
 def _ride_through(data: dict, source: str, n_loads: int, design_delay: float,
-                  consistent: bool = True) -> RideThrough:
-    """The ``ride_through`` section: every field present and of its kind, and (``consistent``)
-    the engine's limits the analysis' divided by the margin (the answer budget on top of the
-    design's own delay ``design_delay``) and the scalars the worst load's. The per-load lists
-    (one value per grid load, ``n_loads``) come all four or none: a table written before them
-    has the scalars only, its answer budget without the design's delay."""
+                  consistent: bool = True) -> RideThrough | None:
+    """The ``ride_through`` section (gains/ridethrough.py): every field present and of its kind,
+    the growth one curve per bridge, output and analysed load over the gap grid, and
+    (``consistent``) each grid load's answer budget the design's delay plus the tolerated extra
+    delay over the margin. A section of an earlier version (``growth_limit``: the relative
+    criterion) is not used: None, the engine then uses its fixed limits for a table without an
+    analysis (rt/controller.py)."""
     section = data["ride_through"]
     if not isinstance(section, dict):
-        raise GainTableError("ride_through", _short(section), "a mapping of the ride-through limits",
-                             source)
+        raise GainTableError("ride_through", _short(section), "a mapping of the ride-through analysis", source)
+    if "growth_limit" in section and "criterion" not in section:
+        return None
     unknown = sorted(set(section) - set(RideThrough.FIELDS))
     if unknown:
         raise GainTableError(f"ride_through.{unknown[0]}", _short(section[unknown[0]]),
                              f"only the fields {', '.join(RideThrough.FIELDS)}", source)
-
-    def count(name: str, positive: bool = False) -> int:
-        raw = _field(data, f"ride_through.{name}", source)
-        if isinstance(raw, bool) or not isinstance(raw, int) or raw < (1 if positive else 0):
-            raise GainTableError(f"ride_through.{name}", raw,
-                                 "a whole number of samples" + (" > 0" if positive else " >= 0"), source)
-        return raw
+    missing = [name for name in RideThrough.FIELDS if name not in section]
+    if missing:
+        raise GainTableError(f"ride_through.{missing[0]}", None, "this field of the ride-through analysis",
+                             source)
+    if section["criterion"] != "absolute":
+        raise GainTableError("ride_through.criterion", section["criterion"], "'absolute'", source)
 
     def number(name: str, low: float, open_low: bool = False) -> float:
         value = _number(data, f"ride_through.{name}", source, positive=False)
@@ -594,75 +595,63 @@ def _ride_through(data: dict, source: str, n_loads: int, design_delay: float,
                                  f"a number {'>' if open_low else '>='} {low:g}", source)
         return value
 
-    def per_load(name: str, whole: bool) -> list:
-        raw = section[name]
-        kind = "whole numbers" if whole else "finite numbers"
-        expected = f"a list of {n_loads} {kind} >= 0, one per grid load (loads_N)"
-        if not isinstance(raw, list) or len(raw) != n_loads:
+    def numbers(name: str, raw, length: int | None, what: str, whole: bool = False, low: float = 0.0) -> list:
+        count = "" if length is None else f"{length} "
+        expected = f"a list of {count}{'whole' if whole else 'finite'} numbers >= {low:g}, {what}"
+        if not isinstance(raw, list) or not raw or (length is not None and len(raw) != length):
             found = f"a list of {len(raw)} values" if isinstance(raw, list) else _short(raw)
             raise GainTableError(f"ride_through.{name}", found, expected, source)
         for i, v in enumerate(raw):
             if (isinstance(v, bool) or not isinstance(v, int if whole else (int, float))
-                    or not math.isfinite(v) or v < 0):
+                    or not math.isfinite(v) or v < low):
                 raise GainTableError(f"ride_through.{name}", f"{v!r} at index {i}", expected, source)
         return raw
 
-    lists = [name for name in RideThrough.PER_LOAD if name in section]
-    if lists and len(lists) < len(RideThrough.PER_LOAD):
-        missing = next(name for name in RideThrough.PER_LOAD if name not in section)
-        raise GainTableError(f"ride_through.{missing}", None,
-                             f"this field with {', '.join(lists)} (the per-load limits come together)",
-                             source)
-    delay_load = _field(data, "ride_through.delay_load_N", source)
-    if delay_load is not None:
-        delay_load = _number(data, "ride_through.delay_load_N", source, positive=False)
-    values = {name: per_load(name, whole=name in ("max_gap_samples_per_load", "gap_limits_samples"))
-              for name in lists}
-    rt = RideThrough(growth_limit=number("growth_limit", 1.0, open_low=True),
-                     margin=number("margin", 1.0), max_gap_samples=count("max_gap_samples"),
-                     gap_limit_samples=count("gap_limit_samples"),
-                     gap_load_n=_number(data, "ride_through.gap_load_N", source, positive=False),
-                     gap_cap_samples=count("gap_cap_samples", positive=True),
-                     max_extra_delay_samples=number("max_extra_delay_samples", 0.0),
-                     answer_budget_periods=number("answer_budget_periods", 0.0),
-                     delay_load_n=delay_load, delay_step_samples=number("delay_step_samples", 0.0, True),
+    grid = numbers("gap_grid_samples", section["gap_grid_samples"], None, "the gap lengths analysed",
+                   whole=True, low=1)
+    if any(b <= a for a, b in zip(grid[:-1], grid[1:], strict=True)):
+        raise GainTableError("ride_through.gap_grid_samples", _short(grid), "increasing gap lengths", source)
+    loads = numbers("loads_N", section["loads_N"], None, "the loads analysed")
+    rigs = section["rigs"]
+    if not isinstance(rigs, list) or not rigs or not all(isinstance(r, str) and r for r in rigs):
+        raise GainTableError("ride_through.rigs", _short(rigs), "a list naming the rigs analysed", source)
+    growth = section["growth"]
+    if not isinstance(growth, dict) or sorted(growth) != sorted(BRIDGES):
+        raise GainTableError("ride_through.growth", _short(growth), f"a mapping of the bridges {BRIDGES}", source)
+    curves = np.zeros((len(BRIDGES), len(OUTPUTS), len(loads), len(grid)))
+    for b, bridge in enumerate(BRIDGES):
+        part = growth[bridge]
+        if not isinstance(part, dict) or sorted(part) != sorted(OUTPUTS):
+            raise GainTableError(f"ride_through.growth.{bridge}", _short(part),
+                                 f"a mapping of the outputs {OUTPUTS}", source)
+        for o, output in enumerate(OUTPUTS):
+            name = f"growth.{bridge}.{output}"
+            rows = part[output]
+            if not isinstance(rows, list) or len(rows) != len(loads):
+                found = f"a list of {len(rows)} curves" if isinstance(rows, list) else _short(rows)
+                raise GainTableError(f"ride_through.{name}", found,
+                                     f"one curve per analysed load ({len(loads)})", source)
+            for i, row in enumerate(rows):
+                values = numbers(f"{name}[{i}]", row, len(grid), "one growth >= 1 per gap of the grid", low=1.0)
+                if any(later < v for v, later in zip(values[:-1], values[1:], strict=True)):
+                    raise GainTableError(f"ride_through.{name}[{i}]", _short(values),
+                                         "a growth that does not fall with the gap's length", source)
+                curves[b, o, i] = values
+    delays = numbers("max_extra_delay_samples_per_load", section["max_extra_delay_samples_per_load"], n_loads,
+                     "one per grid load (loads_N)")
+    budgets = numbers("answer_budgets_periods", section["answer_budgets_periods"], n_loads,
+                      "one per grid load (loads_N)")
+    rt = RideThrough(confidence_sigma=number("confidence_sigma", 0.0, open_low=True), gap_grid_samples=grid,
+                     loads_n=loads, rigs=rigs, growth=curves, max_extra_delay_samples_per_load=delays,
+                     answer_budgets_periods=budgets,
+                     delay_step_samples=number("delay_step_samples", 0.0, True),
                      delay_cap_samples=number("delay_cap_samples", 0.0, True),
-                     elapsed_s=number("elapsed_s", 0.0), **values)
-    if not consistent:
-        return rt
-    # a table written before the per-load limits: its budget did not count the design's delay
-    delay = design_delay if rt.per_load else 0.0
-    rule = "max_extra_delay_samples / margin" + (f" + the design's delay {delay:g}" if rt.per_load else "")
-    gap_limit, budget = limits(rt.max_gap_samples, rt.max_extra_delay_samples, rt.margin, delay)
-    if rt.gap_limit_samples != gap_limit:
-        raise GainTableError("ride_through.gap_limit_samples", rt.gap_limit_samples,
-                             f"floor(max_gap_samples / margin) = {gap_limit}", source)
-    if not math.isclose(rt.answer_budget_periods, budget, rel_tol=1e-12, abs_tol=1e-15):
-        raise GainTableError("ride_through.answer_budget_periods", rt.answer_budget_periods,
-                             f"{rule} = {budget:g}", source)
-    if rt.per_load:
-        _per_load_limits(rt, delay, source)
+                     elapsed_s=number("elapsed_s", 0.0))
+    if consistent:
+        for i, (delay, budget) in enumerate(zip(delays, budgets, strict=True)):
+            expected = answer_budget(design_delay, delay)
+            if not math.isclose(budget, expected, rel_tol=1e-12, abs_tol=1e-15):
+                raise GainTableError("ride_through.answer_budgets_periods", f"{budget!r} at index {i}",
+                                     f"the design's delay {design_delay:g} + max_extra_delay_samples_per_load "
+                                     f"/ {DELAY_MARGIN:g} = {expected:g}", source)
     return rt
-
-
-def _per_load_limits(rt: RideThrough, design_delay: float, source: str) -> None:
-    """The per-load lists of ``rt``: each grid load's limits the analysis' divided by the margin,
-    and the scalars the least of them (the worst load)."""
-    for i, (gap, delay) in enumerate(zip(rt.max_gap_samples_per_load, rt.max_extra_delay_samples_per_load,
-                                         strict=True)):
-        gap_limit, budget = limits(gap, delay, rt.margin, design_delay)
-        if rt.gap_limits_samples[i] != gap_limit:
-            raise GainTableError("ride_through.gap_limits_samples",
-                                 f"{rt.gap_limits_samples[i]} at index {i}",
-                                 f"floor(max_gap_samples_per_load / margin) = {gap_limit}", source)
-        if not math.isclose(rt.answer_budgets_periods[i], budget, rel_tol=1e-12, abs_tol=1e-15):
-            raise GainTableError("ride_through.answer_budgets_periods",
-                                 f"{rt.answer_budgets_periods[i]!r} at index {i}",
-                                 f"max_extra_delay_samples_per_load / margin + the design's delay "
-                                 f"{design_delay:g} = {budget:g}", source)
-    for scalar, name in (("max_gap_samples", "max_gap_samples_per_load"),
-                         ("max_extra_delay_samples", "max_extra_delay_samples_per_load")):
-        least = min(getattr(rt, name))
-        if getattr(rt, scalar) != least:
-            raise GainTableError(f"ride_through.{scalar}", getattr(rt, scalar),
-                                 f"the least of {name} ({least:g}): the worst load's", source)

@@ -88,6 +88,9 @@ class HalBase(abc.ABC):
         # the largest strain the hardware can report (a reading there may be clipped); None: no
         # such limit
         self.strain_full_scale: float | None = None
+        # how long the hardware holds the last voltages without an answer before it falls back
+        # to bias by itself (a DAQ's silence time-out); None: it holds them
+        self.daq_silence_timeout_s: float | None = None
 
     # -- hooks for backends --------------------------------------------------------------------
     @abc.abstractmethod

@@ -3,8 +3,8 @@ compensator with integral action (gains/compensator.py), run each sample as the 
 ran the paper's controller (section 4), by the compiled engine (rt/engine.py).
 
 Per sample, in this order (the engine's ``cycle``):
-1. input checks (strain and load-cell ranges), then, after a gap of the sample sequence, the
-   estimator's prediction over the missing samples;
+1. input checks (strain and load-cell ranges), and the stall the stacks held a stale voltage
+   through, against the live ride-through limit (a gap is bridged by holding the estimate);
 2. q = (C0 Phi)^-1 y (eq. 30), for telemetry and the operator (the law reads y itself);
 3. integral action xi += T H y; with anti-windup, an increment whose effect -Ki dxi would push
    a saturated support further along its demanded force is skipped;
@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from beamctl.config.schema import ConfigError
+from beamctl.gains.ridethrough import CONFIDENCE_SIGMA, GROWTH_CAP
 from beamctl.gains.schedule import GainSchedule
 from beamctl.gains.table import GainTable
 from beamctl.hal.base import Sample
@@ -50,6 +51,8 @@ from beamctl.rt.engine import (  # noqa: F401 (the record's layout, re-exported 
     I_BRIDGED,
     I_FAULT,
     I_FLAGS,
+    I_GAP_LIMIT,
+    I_HELD,
     I_INPUT_PERIOD_US,
     I_LATE_ANSWERS,
     I_LOAD,
@@ -69,9 +72,32 @@ from beamctl.rt.engine import (  # noqa: F401 (the record's layout, re-exported 
 from beamctl.rt.record import TRIGGER_FLAGS, code_labels, column_unit, flag_labels  # noqa: F401 (re-exported)
 from beamctl.rt.safety import Fault, Safety, State, TransitionError
 
-# Without a ride-through analysis in the table (a file written before tables carried one), the
-# limits the controller had before: 5 samples missing, 10 late answers, half a period.
-LEGACY_GAP_LIMIT, LEGACY_LATE_LIMIT, LEGACY_BUDGET_PERIODS = 5, 10, 0.5
+# Without a ride-through analysis in the table (a file written before tables carried one, or one
+# analysed by the relative criterion of earlier versions), the limits the controller had before:
+# 5 samples missing or late in a row, half a period, whatever the spreads (as a growth of 1 up to
+# them and none beyond).
+LEGACY_GAP_LIMIT, LEGACY_BUDGET_PERIODS = 5, 0.5
+# the moving spreads of the ride-through follow the signals with this time constant
+SPREAD_TIME_S = 0.1
+# a start allows the growth of this (the moving variances begin at the headroom over k times it)
+START_GROWTH = 10.0
+
+
+@dataclass(frozen=True)
+class RideThroughLimits:
+    """What the engine takes of a table's ride-through (``ride_through_limits``): per grid point
+    the answer budget in periods, the loads the growth was analysed at and per interval between
+    them the growth curves [interval, bridge (hold), output (deflection, voltage), gap], the gap grid, k of the k-sigma bound, and the
+    caps on the gap and late-answer limits (samples)."""
+
+    budgets: np.ndarray
+    growth_loads: np.ndarray
+    growth: np.ndarray
+    grid: np.ndarray
+    confidence_sigma: float
+    gap_cap: float
+    late_cap: float
+    source: str
 
 @dataclass(frozen=True)
 class PreparedTable:
@@ -88,9 +114,9 @@ class PreparedTable:
     half_band_n: float
     first_n: float
     last_n: float
-    limits: np.ndarray          # per grid point: samples missing and late answers in a row the loop
-                                # rides through, the answer budget in periods (ride_through_limits)
+    limits: RideThroughLimits   # the ride-through as the engine takes it (ride_through_limits)
     c0_phi_inv: np.ndarray
+    mode1_strain: np.ndarray    # mode 1's strain per unit q_1 at the gauges, the larger of each plane's
 
 
 def _stacked(blocks: list[np.ndarray]) -> np.ndarray:
@@ -105,15 +131,14 @@ PLANE_OUTPUTS = {"y": [0, 2], "z": [1, 3]}
 def plane_split(compensator, blocks: dict[str, list[np.ndarray]]) -> int | None:
     """The number of plane-y states when the compensator's planes do not couple and plane y's
     states come first (the engine then runs each product per plane, ``engine.V_SPLIT``), else
-    None. ``blocks``: the schedule's [M_i; S_i] blocks of each product ("out", "upd", "pred"),
+    None. ``blocks``: the schedule's [M_i; S_i] blocks of each product ("out", "upd"),
     checked to vanish outside the planes' own rows and columns at every grid point."""
     n = compensator.n_states
     ys, zs = list(compensator.plane_states["y"]), list(compensator.plane_states["z"])
     ny = len(ys)
     if ys != list(range(ny)) or zs != list(range(ny, n)) or ny == 0 or ny == n:
         return None
-    rows = {"out": PLANE_OUTPUTS, "upd": {"y": list(range(ny)), "z": list(range(ny, n))},
-            "pred": PLANE_OUTPUTS}
+    rows = {"out": PLANE_OUTPUTS, "upd": {"y": list(range(ny)), "z": list(range(ny, n))}}
     for key, stacked in blocks.items():
         for block in stacked:
             half = block.shape[0] // 2
@@ -121,7 +146,7 @@ def plane_split(compensator, blocks: dict[str, list[np.ndarray]]) -> int | None:
                 mask = np.ones_like(m, dtype=bool)
                 for p in ("y", "z"):
                     states = ys if p == "y" else zs
-                    cols = states if key == "pred" else PLANE_SIGNALS[p] + [12 + i for i in states]
+                    cols = PLANE_SIGNALS[p] + [12 + i for i in states]
                     mask[np.ix_(rows[key][p], cols)] = False
                 if np.any(m[mask] != 0.0):
                     return None
@@ -134,7 +159,7 @@ def plane_blocks(stacked: list[np.ndarray], key: str, ny: int, n: int) -> np.nda
     out = []
     for p, states in (("y", list(range(ny))), ("z", list(range(ny, n)))):
         rows = states if key == "upd" else PLANE_OUTPUTS[p]
-        cols = states if key == "pred" else PLANE_SIGNALS[p] + [12 + i for i in states]
+        cols = PLANE_SIGNALS[p] + [12 + i for i in states]
         for block in stacked:
             half = block.shape[0] // 2
             sub = np.ix_(rows, cols)
@@ -142,41 +167,46 @@ def plane_blocks(stacked: list[np.ndarray], key: str, ny: int, n: int) -> np.nda
     return np.concatenate(out)
 
 
-def ride_through_limits(table: GainTable, config: ControllerConfig) -> np.ndarray:
-    """Per grid point of ``table``: (samples missing in a row, late answers in a row, answer
-    budget in periods) that the loop rides through, [G x 3]. From the table's ride-through
-    analysis (stored with the table when it was built: per load where it gives them, else its
-    worst load's), tightened by the configuration where it sets a smaller value; a configured
-    value beyond the analysis at every load is refused (ConfigError)."""
+def ride_through_limits(table: GainTable, config: ControllerConfig) -> RideThroughLimits:
+    """The ride-through of ``table`` as the engine uses it (``RideThroughLimits``): from the
+    table's analysis (stored with the table when it was built), the configuration's settings
+    tightening it where they are smaller; a configured value beyond what the analysis allows at
+    any load is refused (ConfigError)."""
     s = config.safety
     g = len(table.loads_n)
     rt = getattr(table, "ride_through", None)
     if rt is None:
-        gap = np.full(g, LEGACY_GAP_LIMIT, dtype=float)
-        budget = np.full(g, LEGACY_BUDGET_PERIODS)
-        late = np.full(g, LEGACY_LATE_LIMIT, dtype=float)
+        grid = np.array([float(LEGACY_GAP_LIMIT), LEGACY_GAP_LIMIT + 1.0])
+        one = np.array([[[1.0, GROWTH_CAP], [1.0, GROWTH_CAP]]])     # [bridge, output, gap]
+        growth = np.broadcast_to(one, (g, 1, 2, 2)).copy()
+        growth_loads = np.asarray(table.loads_n, dtype=float)
+        budgets = np.full(g, LEGACY_BUDGET_PERIODS)
+        k = CONFIDENCE_SIGMA
         source = "the limits used without a ride-through analysis in the table"
     else:
-        per_load = getattr(rt, "gap_limits_samples", None)
-        gap = (np.asarray(per_load, dtype=float) if per_load is not None
-               else np.full(g, rt.gap_limit_samples, dtype=float))
-        budgets = getattr(rt, "answer_budgets_periods", None)
-        budget = (np.asarray(budgets, dtype=float) if budgets is not None
-                  else np.full(g, rt.answer_budget_periods))
-        late = gap.copy()
+        grid = np.asarray(rt.gap_grid_samples, dtype=float)
+        growth_loads = np.unique(np.asarray(rt.loads_n, dtype=float))
+        growth = rt.interval_growth(growth_loads)
+        budgets = np.asarray(rt.answer_budgets_periods, dtype=float)
+        k = rt.confidence_sigma
         source = "the gain table's ride-through analysis"
-    limits = np.column_stack([gap, late, budget])
-    configured = ((0, "stale_periods", s.stale_periods), (1, "late_answer_streak", s.late_answer_streak),
-                  (2, "answer_budget_periods", s.answer_budget_periods))
-    for col, key, value in configured:
+    gap_cap = late_cap = float(grid[-1])
+    for key, value in (("stale_periods", s.stale_periods), ("late_answer_streak", s.late_answer_streak),
+                       ("answer_budget_periods", s.answer_budget_periods)):
         if value is None:
             continue
-        most = float(limits[:, col].max())
+        most = float(budgets.max()) if key == "answer_budget_periods" else float(grid[-1])
         if value > most:
             raise ConfigError(f"controller.safety.{key}", value,
                               f"at most {most:g}, what {source} allows (a smaller value tightens it)")
-        np.minimum(limits[:, col], value, out=limits[:, col])
-    return limits
+        if key == "stale_periods":
+            gap_cap = float(value)
+        elif key == "late_answer_streak":
+            late_cap = float(value)
+        else:
+            budgets = np.minimum(budgets, value)
+    return RideThroughLimits(budgets=budgets, growth_loads=growth_loads, growth=growth, grid=grid, confidence_sigma=float(k),
+                             gap_cap=gap_cap, late_cap=late_cap, source=source)
 
 
 class Controller:
@@ -230,6 +260,10 @@ class Controller:
         fv[e.P_SPAN], fv[e.P_SPAN_FITS] = alloc.voltage_span_v, alloc.span_fits
         fv[e.P_BIAS] = act.bias_voltage_v
         fv[e.X_SCALE_A] = fv[e.X_SCALE_B] = 1.0
+        fv[e.P_PERIOD] = self.period_s
+        fv[e.P_STAT_ALPHA] = 1.0 - np.exp(-self.period_s / SPREAD_TIME_S)
+        fv[e.P_START_GROWTH] = START_GROWTH
+        self._gap_cap = np.inf          # the DAQ's own silence (``cap_gap_limit``)
         self._bias = np.full(6, act.bias_voltage_v)
         self.safety = Safety(self, iv, fv, tuple(s.load_range_n), s.ramp_time_s)
         self.supervisor = self.safety.supervisor
@@ -252,16 +286,13 @@ class Controller:
             raise ValueError(f"the table was designed for the model with SHA-256 {table.model_sha256}, "
                              f"the controller runs the model with SHA-256 {self.model_sha256}")
         limits = ride_through_limits(table, self.config)
-        # per grid interval (the engine's index): the lesser of its two ends
-        interval = np.minimum(limits, np.vstack([limits[1:], limits[-1:]]))
-        interval[:, 2] *= self.period_s
+        # the answer budget per grid interval (the engine's index): the lesser of its two ends
+        budgets = np.minimum(limits.budgets, np.concatenate([limits.budgets[1:], limits.budgets[-1:]]))
+        budgets = budgets * self.period_s
         comp = table.compensator
         schedule = GainSchedule.from_table(table)
         n = comp.n_states
-        predict = getattr(comp, "predict", None)
         blocks = {"out": schedule._output_blocks, "upd": schedule._update_blocks}
-        if predict is not None:
-            blocks["pred"] = GainSchedule.stacked_blocks(predict, table.loads_n)
         ny = plane_split(comp, blocks)
         if ny is None:
             flat = {key: _stacked(b) for key, b in blocks.items()}
@@ -276,17 +307,19 @@ class Controller:
             "out": flat["out"],
             "upd": flat["upd"],
             "int": _stacked(schedule._integral_blocks),
-            "pred": flat.get("pred", np.zeros(0)),
             "start": np.asarray(comp.start, dtype=float),
             "exc": self._excitation if self._excitation is not None else np.zeros(0),
-            "lim": interval,
+            "lim": budgets,
+            "grid": limits.grid,
+            "growth": np.ascontiguousarray(limits.growth),
+            "gloads": limits.growth_loads,
         }
         offsets, at = {}, 0
         for key, part in parts.items():
             offsets[key] = at
             at += np.asarray(part).size
         mats = np.concatenate([np.ascontiguousarray(p, dtype=float).ravel() for p in parts.values()])
-        table_iv = np.zeros(e.N_IV - e.V_PAPER, dtype=np.int64)
+        table_iv = np.zeros(e.TABLE_IV.stop - e.TABLE_IV.start, dtype=np.int64)
 
         def put(slot: int, value: int) -> None:
             table_iv[slot - e.V_PAPER] = value
@@ -294,19 +327,25 @@ class Controller:
         put(e.V_PAPER, 1 if schedule.mode == "paper" else 0)
         put(e.V_N_LOADS, len(table.loads_n))
         put(e.V_N_X, n)
-        put(e.V_PREDICT, 1 if predict is not None else 0)
         put(e.V_SPLIT, 0 if ny is None else 1)
         put(e.V_NY, 0 if ny is None else ny)
         for slot, key in ((e.O_C0, "c0"), (e.O_TH, "th"), (e.O_FORCE, "force"), (e.O_COEF, "coef"),
                           (e.O_LOADS, "loads"), (e.O_OUT, "out"), (e.O_UPD, "upd"), (e.O_INT, "int"),
-                          (e.O_PRED, "pred"), (e.O_START, "start"), (e.O_EXC, "exc"), (e.O_LIM, "lim")):
+                          (e.O_START, "start"), (e.O_EXC, "exc"), (e.O_LIM, "lim"),
+                          (e.O_GRID, "grid"), (e.O_GROWTH, "growth"), (e.O_GLOADS, "gloads")):
             put(slot, offsets[key])
+        put(e.V_N_GRID, len(limits.grid))
+        put(e.V_N_GLOADS, len(limits.growth_loads))
+        # mode 1's strain at the gauges per unit q_1 (q = (C0 Phi)^-1 y): the column of C0 Phi
+        c0_phi = np.linalg.inv(np.asarray(table.c0_phi_inv, dtype=float))
+        mode1 = np.array([np.abs(c0_phi[[0, 2], 0]).max(), np.abs(c0_phi[[1, 3], 1]).max()])
         return PreparedTable(table=table, schedule=schedule,
                              core=e.core_array(N_COLUMNS + n + e.scratch_size(n), mats),
                              nb=N_COLUMNS + n + e.scratch_size(n),
                              table_iv=table_iv, alpha=schedule.alpha, half_band_n=schedule.half_band_n,
                              first_n=float(table.loads_n[0]), last_n=float(table.loads_n[-1]),
-                             limits=limits, c0_phi_inv=np.ascontiguousarray(table.c0_phi_inv))
+                             limits=limits, c0_phi_inv=np.ascontiguousarray(table.c0_phi_inv),
+                             mode1_strain=mode1)
 
     def use_table(self, prepared: PreparedTable) -> None:
         """Run the table of ``prepared`` (``prepare_table``) from the next step on. Only at bias
@@ -339,6 +378,10 @@ class Controller:
         iv[e.TABLE_IV] = p.table_iv
         fv[e.P_ALPHA], fv[e.P_HALF_BAND] = p.alpha, p.half_band_n
         fv[e.P_FIRST], fv[e.P_LAST] = p.first_n, p.last_n
+        fv[e.P_K_SIGMA] = p.limits.confidence_sigma
+        fv[e.P_C1:e.P_C1 + 2] = p.mode1_strain
+        fv[e.P_GAP_CAP] = min(p.limits.gap_cap, self._gap_cap)
+        fv[e.P_LATE_CAP] = p.limits.late_cap
         self._mats = mats
         self._buffer = buffer
         r = buffer[:N_COLUMNS]
@@ -420,6 +463,44 @@ class Controller:
             e.sample_cycle(self._core, self._nb, sample.timestamp, sample.sequence, sample.axial_load,
                            float(sample.missed), sample.strains)
         return self.voltages
+
+    def cap_gap_limit(self, seconds: float | None) -> None:
+        """The DAQ falls back to bias by itself after ``seconds`` without an answer (its silence
+        time-out; None: it does not): the live ride-through limit stays two samples short of it,
+        so that the controller, not the DAQ's fallback, decides."""
+        if seconds is None or not seconds > 0:
+            return
+        self._gap_cap = max(float(np.floor(seconds / self.period_s)) - 2.0, 0.0)
+        self.fv[e.P_GAP_CAP] = min(self._prepared.limits.gap_cap, self._gap_cap)
+
+    @property
+    def gap_limit(self) -> float:
+        """The live ride-through limit in samples (gains/ridethrough.py, rt/engine.py)."""
+        return float(self.fv[e.X_LIMIT])
+
+    def warm(self) -> float:
+        """Make everything the loop's cycle calls ready before it arms: every entry point of
+        the engine compiled (or loaded from numba's cache) and run through its controlled path
+        on a copy of this controller's arrays, with the argument types the step passes. Returns
+        the seconds it took."""
+        import time
+
+        started = time.perf_counter()
+        core = self._core.copy()
+        nb = self._nb
+        buf, fv, iv, mats = e.core_views(core, nb)
+        strains = np.zeros(4)
+        load = float(self._prepared.first_n)
+        e.sample_cycle(core, nb, 0.0, 0, load, 0.0, strains)
+        e.command(buf, iv, fv, mats, e.C_START, 0)
+        iv[e.V_STATE] = e.S_RUNNING
+        for k in range(1, 4):
+            e.sample_cycle(core, nb, k * self.period_s, k, load, float(k > 2), strains)
+            e.answered(buf, iv, fv, 0.0)
+        e.cycle(buf, iv, fv, mats, 0)
+        e.command(buf, iv, fv, mats, e.C_OVERRAN, 0)
+        e.command(buf, iv, fv, mats, e.C_ON_TIME, 0)
+        return time.perf_counter() - started
 
     def answer_sent(self, age_s: float) -> None:
         """The answer to the latest sample had been sent ``age_s`` after the sample arrived (NaN:

@@ -26,14 +26,17 @@ fault codes and the flag bits are defined here, beside the code that writes them
 function keeps module constants as they were when it was compiled; numba's cache is keyed on
 this file).
 
-Missing samples (a sequence jump of ``missed`` samples, or silence): the stacks held the last
-answer's voltages meanwhile (no sample, no answer). When the next sample arrives, the engine
-first runs ``missed`` prediction steps of the compensator, y_hat = P x_c (the table's
-``predict``; without one, the last measured strains), x_c <- A x_c + B y_hat + E u_held, the
-integral held, and then the normal step; past ``gap_limit`` samples (the longest gap the table's
-ride-through analysis says the loop survives, with its margin) the controller faults
-STALE_INPUT. An answer sent later than the answer budget counts as late; more than
-``late_limit`` of them in a row fault LATE_ANSWERS.
+Missing samples (a sequence jump of ``missed`` samples, or a silence): the stacks held the last
+answer's voltages meanwhile (no sample, no answer). The stall is measured as what the beam saw,
+the samples the stacks held that voltage before the new sample (the jump, or the silence since
+the sample before, whichever is longer: ``held_samples``), and compared with the live limit
+(``_live_limit``: the table's ride-through growth against the headroom over k times the spreads
+the engine measures, gains/ridethrough.py); past it the controller faults STALE_INPUT. Within it
+the gap is bridged by holding the estimate: the compensator's state and the integral stay as
+they were and the newest sample enters the normal step (in the time domain this hurts far less
+than running the compensator's prediction through the gap, which drifts from the operating point
+the beam is held at). An answer sent later than the answer budget counts as late; more late
+answers in a row than the live limit fault LATE_ANSWERS.
 """
 
 from __future__ import annotations
@@ -62,10 +65,14 @@ RECORD_COLUMNS = (
     # this sample when its answer had been sent (NaN where the HAL does not measure it), and the
     # count of late answers so far
     + ["input_period_us", "answer_age_us", "late_answers"]
-    # samples bridged by the estimator's prediction before this one (a gap of the sequence)
+    # samples missing before this one (a gap of the sequence), bridged by holding the estimate
     + ["bridged"]
     # an operator's command carried out or refused at this sample (rt/loop.py operator_labels)
     + ["operator_command"]
+    # the ride-through: the live limit (samples the stacks may hold a stale voltage), the stall
+    # ridden through at this sample (samples the stacks held the last answer before it), and the
+    # measured spreads it follows from (mode 1 at the gauges, strain; the stacks, V)
+    + ["gap_limit_samples", "held_samples", "spread_deflection", "spread_voltage_V"]
     + SIGNAL_COLUMNS
 )
 COL = {name: i for i, name in enumerate(RECORD_COLUMNS)}
@@ -76,11 +83,13 @@ I_LOAD, I_LOAD_FILTERED = 5, 6
 I_Q, I_U, I_V = 7, 11, 15
 I_SCALE_A, I_SCALE_B, I_STEP_US = 21, 22, 23
 I_INPUT_PERIOD_US, I_ANSWER_AGE_US, I_LATE_ANSWERS, I_BRIDGED, I_OPERATOR_COMMAND = 24, 25, 26, 27, 28
-I_Y, I_XI, I_APPLIED = 29, 33, 37
+I_GAP_LIMIT, I_HELD, I_SPREAD_Q, I_SPREAD_V = 29, 30, 31, 32
+I_Y, I_XI, I_APPLIED = 33, 37, 41
 assert (COL["q_1y"], COL["force_y_A_N"], COL["voltage_a1_V"], COL["scale_A"], COL["input_period_us"],
-        COL["bridged"], COL["operator_command"], COL["strain_y1"], COL["xi_1y"], COL["applied_force_y_A_N"],
-        N_COLUMNS) == (I_Q, I_U, I_V, I_SCALE_A, I_INPUT_PERIOD_US, I_BRIDGED, I_OPERATOR_COMMAND, I_Y, I_XI,
-                       I_APPLIED, 41), "the record's column indices"
+        COL["bridged"], COL["operator_command"], COL["gap_limit_samples"], COL["spread_voltage_V"],
+        COL["strain_y1"], COL["xi_1y"], COL["applied_force_y_A_N"], N_COLUMNS) == (
+    I_Q, I_U, I_V, I_SCALE_A, I_INPUT_PERIOD_US, I_BRIDGED, I_OPERATOR_COMMAND, I_GAP_LIMIT, I_SPREAD_V, I_Y,
+    I_XI, I_APPLIED, 45), "the record's column indices"
 
 # flag bits of the record's ``flags`` column
 FLAG_SATURATED_A = 1
@@ -110,9 +119,9 @@ S_INIT, S_ARMED, S_RUNNING, S_FAULT, S_STOPPING, S_STOPPED = 0, 1, 2, 3, 4, 5
 (V_ANTI_WINDUP, V_LAW, V_CLIP, V_START_SAMPLES, V_SAT_LIMIT, V_GAP_LIMIT, V_LATE_LIMIT, V_OVERRUN_LIMIT,
  V_RAMP_SAMPLES, V_EXC_ROWS) = range(17, 27)
 # settings of the gain table in use (copied from its ``table_iv`` by ``use_table``)
-(V_PAPER, V_N_LOADS, V_N_X, V_PREDICT, O_C0, O_TH, O_FORCE, O_COEF, O_LOADS, O_OUT, O_UPD, O_INT, O_PRED,
- O_START, O_EXC, V_SPLIT, V_NY, O_LIM) = range(27, 45)
-N_IV = 45
+(V_PAPER, V_N_LOADS, V_N_X, O_C0, O_TH, O_FORCE, O_COEF, O_LOADS, O_OUT, O_UPD, O_INT, O_START, O_EXC,
+ V_SPLIT, V_NY, O_LIM, O_GRID, O_GROWTH, V_N_GRID, O_GLOADS, V_N_GLOADS, V_GINDEX) = range(27, 49)
+N_IV = 49
 TABLE_IV = slice(V_PAPER, N_IV)
 
 # -- fv: float state, settings, inputs -------------------------------------------------------------------
@@ -125,7 +134,15 @@ X_DU = 24                                       # 4: what it does to u
  P_SPAN, P_SPAN_FITS, P_BIAS, P_BUDGET_S) = range(28, 42)
 (IN_TIME, IN_SEQUENCE, IN_LOAD, IN_MISSED, IN_SILENT) = range(42, 47)
 IN_Y = 47                                       # 4 strains
-N_FV = 51
+# the ride-through's measurements: moving means and variances of q_1 (planes y, z), the strains'
+# means, the stacks' means and variances; the live limit (samples) and the growth the headroom
+# allows (deflection, voltage)
+X_QM, X_QV, X_YM, X_VM, X_VV, X_LIMIT, X_ALLOWED = 51, 53, 55, 59, 65, 71, 73
+# its settings: the moving statistics' coefficient, k of the k-sigma bound, mode 1's strain per
+# unit q_1 at the gauges (the larger of a plane's two), the caps on the gap and late-answer limits
+# (the DAQ's silence, the configuration's), the period, the growth allowed at a start
+P_STAT_ALPHA, P_K_SIGMA, P_C1, P_GAP_CAP, P_LATE_CAP, P_PERIOD, P_START_GROWTH = 75, 76, 77, 79, 80, 81, 82
+N_FV = 83
 
 # Scratch after x_c in ``buf``: a plane's gathered signals (6 + n), a product's result (n + 4).
 # ``V_SPLIT`` 1: the compensator's two bending planes do not couple and their
@@ -204,13 +221,129 @@ def _trip(buf, iv, fv, fault, value, limit, channel):
     return True
 
 
+def gap_allowed(growth, o, grid, g0, n, allowed_q, allowed_v):
+    """The longest gap of the grid (``grid[g0:g0 + n]``) whose growth (deflection at
+    ``growth[o:o + n]``, voltage after it) is within what the headroom allows: 0 when not even
+    the first."""
+    best = 0.0
+    for i in range(n):
+        if growth[o + i] > allowed_q or growth[o + n + i] > allowed_v:
+            break
+        best = grid[g0 + i]
+    return best
+
+
+def _allowed(buf, fv):
+    """The growth the headroom allows, deflection and voltage (gains/ridethrough.py): the
+    headroom over k times the spread, from the moving means and variances."""
+    k = fv[P_K_SIGMA]
+    sq = 0.0
+    for p in range(2):
+        s = math.sqrt(fv[X_QV + p]) * fv[P_C1 + p]
+        if s > sq:
+            sq = s
+    ym = 0.0
+    for j in range(4):
+        a = abs(fv[X_YM + j])
+        if a > ym:
+            ym = a
+    sv = 0.0
+    hv = math.inf
+    for j in range(6):
+        s = math.sqrt(fv[X_VV + j])
+        if s > sv:
+            sv = s
+        m = fv[X_VM + j]
+        h = fv[P_V_MAX] - m if fv[P_V_MAX] - m < m - fv[P_V_MIN] else m - fv[P_V_MIN]
+        if h < hv:
+            hv = h
+    hq = fv[P_STRAIN_LIMIT] - ym
+    aq = hq / (k * sq) if sq > 0.0 else math.inf
+    av = hv / (k * sv) if sv > 0.0 else math.inf
+    if not hq > 0.0:
+        aq = 0.0
+    if not hv > 0.0:
+        av = 0.0
+    fv[X_ALLOWED] = aq
+    fv[X_ALLOWED + 1] = av
+    buf[I_SPREAD_Q] = sq
+    buf[I_SPREAD_V] = sv
+
+
+def _live_limit(buf, iv, fv, mats):
+    """The live ride-through limit (samples) of the grid interval in use, from the growth the
+    headroom allows now; capped by the DAQ's silence and the configuration."""
+    _allowed(buf, fv)
+    # the growth's interval: between the analysed loads around the filtered load
+    i = iv[V_GINDEX]
+    og = iv[O_GLOADS]
+    last = iv[V_N_GLOADS] - 1
+    load = fv[X_FILTERED]
+    while i < last and mats[og + i + 1] <= load:
+        i += 1
+    while i > 0 and mats[og + i] > load:
+        i -= 1
+    iv[V_GINDEX] = i
+    n = iv[V_N_GRID]
+    o = iv[O_GROWTH] + 2 * n * i
+    best = gap_allowed(mats, o, mats, iv[O_GRID], n, fv[X_ALLOWED], fv[X_ALLOWED + 1])
+    if best > fv[P_GAP_CAP]:
+        best = fv[P_GAP_CAP]
+    fv[X_LIMIT] = best
+    iv[V_GAP_LIMIT] = int(best)
+    late = fv[P_LATE_CAP]
+    iv[V_LATE_LIMIT] = int(best if best < late else late)
+    buf[I_GAP_LIMIT] = best
+
+
+def _stats_start(buf, iv, fv, mats):
+    """The moving statistics at a start: the means where the signals are, the variances as
+    large as lets the headroom allow a growth of P_START_GROWTH (they settle to the measured
+    within a few of their time constants)."""
+    k = fv[P_K_SIGMA] * fv[P_START_GROWTH]
+    ym = 0.0
+    for j in range(4):
+        y = buf[I_Y + j]
+        fv[X_YM + j] = y if y - y == 0.0 else 0.0
+        if abs(fv[X_YM + j]) > ym:
+            ym = abs(fv[X_YM + j])
+    hq = fv[P_STRAIN_LIMIT] - ym
+    for p in range(2):
+        q = buf[I_Q + p]
+        fv[X_QM + p] = q if q - q == 0.0 else 0.0
+        s = hq / (k * fv[P_C1 + p]) if hq > 0.0 and fv[P_C1 + p] > 0.0 else 0.0
+        fv[X_QV + p] = s * s
+    for j in range(6):
+        fv[X_VM + j] = buf[I_V + j]
+        h = fv[P_V_MAX] - buf[I_V + j]
+        if buf[I_V + j] - fv[P_V_MIN] < h:
+            h = buf[I_V + j] - fv[P_V_MIN]
+        s = h / k if h > 0.0 else 0.0
+        fv[X_VV + j] = s * s
+    _live_limit(buf, iv, fv, mats)
+
+
+def _stats_update(buf, iv, fv, mats):
+    """One controlled sample into the moving statistics (exponential, coefficient
+    P_STAT_ALPHA), then the live limits."""
+    a = fv[P_STAT_ALPHA]
+    for p in range(2):
+        d = buf[I_Q + p] - fv[X_QM + p]
+        fv[X_QM + p] += a * d
+        fv[X_QV + p] = (1.0 - a) * (fv[X_QV + p] + a * d * d)
+    for j in range(4):
+        fv[X_YM + j] += a * (buf[I_Y + j] - fv[X_YM + j])
+    for j in range(6):
+        d = buf[I_V + j] - fv[X_VM + j]
+        fv[X_VM + j] += a * d
+        fv[X_VV + j] = (1.0 - a) * (fv[X_VV + j] + a * d * d)
+    _live_limit(buf, iv, fv, mats)
+
+
 def _limits(iv, fv, mats):
-    """The ride-through limits at the grid point in use (the table's, per grid interval: the
-    lesser of its two ends): samples missing in a row, late answers in a row, answer budget."""
-    o = iv[O_LIM] + 3 * iv[V_INDEX]
-    iv[V_GAP_LIMIT] = int(mats[o])
-    iv[V_LATE_LIMIT] = int(mats[o + 1])
-    fv[P_BUDGET_S] = mats[o + 2]
+    """The answer budget at the grid point in use (the table's, per grid interval: the lesser of
+    its two ends); the gap and late-answer limits are live (``_live_limit``)."""
+    fv[P_BUDGET_S] = mats[iv[O_LIM] + iv[V_INDEX]]
 
 
 def _settle(iv, fv, mats, load):
@@ -377,27 +510,6 @@ def _output(buf, iv, fv, mats):
     _product(mats, iv[O_OUT], 4, 12 + n, index, offset, buf, I_SIGNALS, buf, I_U)
 
 
-def _predict(buf, iv, fv, mats):
-    """The predicted strains P x_c at the current load into the signal vector's strains."""
-    n = iv[V_N_X]
-    sp, res = _scratch(n)
-    index, offset = iv[V_INDEX], fv[X_OFFSET]
-    if iv[V_SPLIT] == 1:
-        o = iv[O_PRED]
-        start = 0
-        for p in range(2):
-            count = iv[V_NY] if p == 0 else n - iv[V_NY]
-            _product(mats, o, 2, count, index, offset, buf, N_COLUMNS + start, buf, res)
-            buf[I_Y + p] = buf[res]
-            buf[I_Y + p + 2] = buf[res + 1]
-            o += iv[V_N_LOADS] * 4 * count
-            start += count
-        return
-    _product(mats, iv[O_PRED], 4, n, index, offset, buf, N_COLUMNS, buf, res)
-    for j in range(4):
-        buf[I_Y + j] = buf[res + j]
-
-
 def allocate_support(fy, fz, mats, oc, clip, v_min, v_max, v_mid, span, span_fits, bias, out, first):
     """The three voltages of one support for the lateral force (fy, fz) into out[first:first + 3];
     returns the fraction of the force delivered along its direction (rt/allocation.py explains
@@ -481,16 +593,6 @@ def _check_inputs(buf, iv, fv):
             _trip(buf, iv, fv, F_LOAD_OUT_OF_SENSOR_RANGE, load, 0.0, -1)
 
 
-def _bridge(buf, iv, fv, mats, missed):
-    """``missed`` prediction steps: the stacks held their voltages (u_applied as recorded), the
-    integral holds, the compensator runs on its own prediction of the strains."""
-    for _ in range(missed):
-        if iv[V_PREDICT] == 1:
-            _predict(buf, iv, fv, mats)
-        # else: the last measured strains stay in the signal vector
-        _update(buf, iv, fv, mats)
-
-
 def _control(buf, iv, fv, mats):
     """One controlled sample (RUNNING, a new sample in the record)."""
     flags = 0
@@ -570,6 +672,12 @@ def _control(buf, iv, fv, mats):
     _applied_forces(buf, iv, fv, mats)
     if iv[V_LAW] == 1:
         _update(buf, iv, fv, mats)
+        # the fade-in moves the stacks from bias on purpose: the moving statistics start over
+        # where the voltages are until it ends, so that the ramp is not taken for a spread
+        if steps <= start:
+            _stats_start(buf, iv, fv, mats)
+        else:
+            _stats_update(buf, iv, fv, mats)
         if fv[X_SCALE_A] < 1.0 or fv[X_SCALE_B] < 1.0:
             iv[V_SATURATED] += 1
             if iv[V_SATURATED] >= iv[V_SAT_LIMIT]:
@@ -603,9 +711,11 @@ def cycle(buf, iv, fv, mats, sample):
         iv[V_SILENT] = 0
         t = fv[IN_TIME]
         fv[X_TIME] = t
-        buf[I_INPUT_PERIOD_US] = (t - buf[I_TIME]) * 1e6
+        since = t - buf[I_TIME]
+        buf[I_INPUT_PERIOD_US] = since * 1e6
         buf[I_TIME] = t
         buf[I_SEQUENCE] = fv[IN_SEQUENCE]
+        buf[I_HELD] = 0.0
         # compared as a float before it is a count: a gap of any length (beyond int64 too) faults
         gap = fv[IN_MISSED]
         if running:
@@ -616,13 +726,23 @@ def cycle(buf, iv, fv, mats, sample):
                 missed = int(gap)
             else:                                   # beyond int64, or NaN: the cap
                 missed = int(GAP_COUNT_CAP)
-            if missed > iv[V_MAX_GAP]:
-                iv[V_MAX_GAP] = missed
-            if not gap <= iv[V_GAP_LIMIT]:
-                _trip(buf, iv, fv, F_STALE_INPUT, gap, iv[V_GAP_LIMIT], -1)
-            elif missed > 0:
-                if iv[V_STATE] == S_RUNNING and iv[V_LAW] == 1:
-                    _bridge(buf, iv, fv, mats, missed)
+            # the stacks held the last answer for as long as the samples missing, or the silence
+            # before this one, whichever is longer: that time is what the limit is compared with
+            held = gap if gap > 0.0 else 0.0
+            silent = math.floor(since / fv[P_PERIOD] - 0.5) if since > 0.0 else 0.0
+            if silent > held:
+                held = silent
+            if not gap <= GAP_COUNT_CAP:
+                held = gap
+            buf[I_HELD] = held
+            if held > iv[V_MAX_GAP]:
+                iv[V_MAX_GAP] = int(held) if held < GAP_COUNT_CAP else int(GAP_COUNT_CAP)
+            if held > 0.0 or not held == held:
+                # the gap is bridged by holding the estimate (the compensator's state and the
+                # integral as they were): the newest sample enters the normal step
+                if not held <= fv[X_LIMIT]:
+                    _trip(buf, iv, fv, F_STALE_INPUT, held, fv[X_LIMIT], -1)
+                elif iv[V_STATE] == S_RUNNING and iv[V_LAW] == 1 and missed > 0:
                     flags += FLAG_BRIDGED
                     buf[I_BRIDGED] = missed
                     iv[V_BRIDGED] += missed
@@ -772,6 +892,7 @@ def command(buf, iv, fv, mats, what, arg):
             _trip(buf, iv, fv, F_STRAIN_NOT_FINITE, math.nan, fv[P_STRAIN_LIMIT], -1)
         else:
             _matvec(mats, iv[O_START], n, 4, buf, I_Y, buf, N_COLUMNS)
+            _stats_start(buf, iv, fv, mats)
     elif what == C_STOP:
         if state == S_RUNNING or state == S_ARMED or state == S_INIT:
             _ramp_begin(buf, iv, fv)
@@ -822,6 +943,11 @@ _at_bias = _jit(_at_bias)
 _ramp_begin = _jit(_ramp_begin)
 _ramp_advance = _jit(_ramp_advance)
 _trip = _jit(_trip)
+gap_allowed = _jit(gap_allowed)
+_allowed = _jit(_allowed)
+_live_limit = _jit(_live_limit)
+_stats_start = _jit(_stats_start)
+_stats_update = _jit(_stats_update)
 _limits = _jit(_limits)
 _settle = _jit(_settle)
 _reset_schedule = _jit(_reset_schedule)
@@ -833,10 +959,8 @@ _applied_forces = _jit(_applied_forces)
 _gather = _jit(_gather)
 _update = _jit(_update)
 _output = _jit(_output)
-_predict = _jit(_predict)
 allocate_support = _jit(allocate_support)
 _check_inputs = _jit(_check_inputs)
-_bridge = _jit(_bridge)
 _control = _jit(_control)
 cycle = _jit(cycle)
 sample_cycle = _jit(sample_cycle)

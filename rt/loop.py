@@ -16,8 +16,10 @@ Each answer's age (the sample's arrival to the answer having been sent, where th
 it) goes to the engine, which counts late answers against the answer budget, and is recorded
 with the sample.
 
-Start-up order: real-time set-up (SCHED_FIFO, memory lock, the garbage collector collected and
-frozen) first, then the HAL is opened (if the caller has not), then whatever the HAL queued
+Start-up order: the controller's cycle warmed (every engine entry point compiled or loaded and
+run through its controlled path on a copy of the controller's arrays: no first sample waits for
+a compilation), real-time set-up (SCHED_FIFO, memory lock, the garbage collector collected and
+frozen), then the HAL is opened (if the caller has not), then whatever the HAL queued
 before the controller was ready is discarded and counted, all but the newest sample, which arms.
 At the end the final state is announced to the hardware (the DAQ sees STOPPED or FAULT).
 
@@ -55,6 +57,8 @@ from beamctl.rt.controller import (
     FLAG_RAMPING_TO_BIAS,
     I_FAULT,
     I_FLAGS,
+    I_GAP_LIMIT,
+    I_HELD,
     I_INPUT_PERIOD_US,
     I_LOAD,
     I_OPERATOR_COMMAND,
@@ -291,6 +295,9 @@ class ControlLoop:
         service asks for it (service/run.py), offline runs and tests do not. ``require_rt``: refuse
         to run without it."""
         rt_report = {}
+        # everything the cycle calls compiled, loaded and run once before it arms: a first
+        # sample answered late by a compilation is a stall of the loop's own making
+        self.warm_up_s = self.controller.warm()
         try:
             if acquire_rt:
                 rt_report = realtime.acquire(self.controller.config.realtime, require_rt)
@@ -332,6 +339,7 @@ class ControlLoop:
 
     def _arm(self) -> None:
         c = self.controller
+        c.cap_gap_limit(getattr(self.hal, "daq_silence_timeout_s", None))
         full_scale = self.hal.strain_full_scale
         if full_scale is not None:
             c.safety.cap_strain_limit(full_scale, getattr(self.hal, "strain_lsb", 0.0))
@@ -452,6 +460,8 @@ class ControlLoop:
                         c.answer_sent(age)
                 if sample is not None and record[I_INPUT_PERIOD_US] > 0:
                     timing.input_period.record(record[I_INPUT_PERIOD_US] * 1e-6)
+                if sample is not None and record[I_HELD] > 0.0:
+                    timing.stalls.record(record[I_HELD], record[I_GAP_LIMIT])
             t3 = clock()
             record[I_STEP_US] = (t2 - t1) * 1e6
             if tel is not None:

@@ -1,5 +1,6 @@
-"""Real-time privileges on Linux: SCHED_FIFO priority, CPU affinity, locked memory, and the
-garbage collector frozen and disabled for the run. Each is asked for when permitted and
+"""Real-time privileges on Linux: SCHED_FIFO priority, CPU affinity (the process's other threads
+kept off the loop's CPU), locked memory, and the garbage collector frozen and disabled for the
+run. Each is asked for when permitted and
 reported as granted or refused; with ``require`` a refusal is an error."""
 
 from __future__ import annotations
@@ -8,6 +9,7 @@ import ctypes
 import ctypes.util
 import gc
 import os
+import threading
 
 from beamctl.rt.config import Realtime
 
@@ -27,6 +29,34 @@ def _mlockall() -> str | None:
     if libc.mlockall(MCL_CURRENT | MCL_FUTURE) != 0:
         return os.strerror(ctypes.get_errno())
     return None
+
+
+def _keep_off(cpu: int) -> str:
+    """Move the process's other threads (telemetry, the control socket, the live view: started
+    before the loop takes its CPU, and never scheduled beside it) to every CPU but ``cpu``: a
+    thread of the normal class waiting on the loop's CPU is given its turn by the kernel's fair
+    server (up to 50 ms a second) however high the loop's priority, a stall of the loop's own
+    making."""
+    others = set(os.sched_getaffinity(0)) | set(range(os.cpu_count() or 1))
+    others.discard(cpu)
+    if not others:
+        return f"refused: no CPU but {cpu} to keep them on"
+    me = threading.get_native_id()
+    moved = 0
+    try:
+        tasks = [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError as exc:
+        return f"refused: /proc/self/task: {exc.strerror}"
+    for tid in tasks:
+        if tid == me:
+            continue
+        try:
+            os.sched_setaffinity(tid, others)
+            moved += 1
+        except OSError:
+            pass
+    _previous["kept_off"] = tasks
+    return f"granted: {moved} kept off CPU {cpu} (on {', '.join(str(c) for c in sorted(others))})"
 
 
 def acquire(settings: Realtime, require: bool = False) -> dict[str, str]:
@@ -50,6 +80,8 @@ def acquire(settings: Realtime, require: bool = False) -> dict[str, str]:
             report["affinity"] = f"granted CPU {settings.cpu}"
         except (OSError, AttributeError) as exc:
             report["affinity"] = f"refused: CPU {settings.cpu}: {getattr(exc, 'strerror', exc)}"
+        else:
+            report["other threads"] = _keep_off(settings.cpu)
     if settings.lock_memory:
         error = _mlockall()
         report["memory"] = "granted mlockall" if error is None else f"refused: mlockall: {error}"

@@ -53,7 +53,7 @@ DESCRIPTIONS = {
     Fault.LOAD_NOT_FINITE: "the load-cell reading is not a finite number",
     Fault.LOAD_OUT_OF_SENSOR_RANGE: "the load-cell reading is outside the sensor range",
     Fault.LOAD_OUT_OF_TABLE_RANGE: "the axial load is outside the gain table's load range",
-    Fault.STALE_INPUT: "more samples missing in a row than the loop rides through",
+    Fault.STALE_INPUT: "the stacks held a stale voltage longer than the beam rides through (samples missing, or a silence)",
     Fault.OVERRUN_STREAK: "too many consecutive overruns of the control period",
     Fault.PERSISTENT_SATURATION: "the stack voltages stayed saturated for too long",
     Fault.HAL_ERROR: "the hardware abstraction reported an error",
@@ -116,7 +116,8 @@ class Supervisor:
             return (f"filtered load {value:.1f} N outside the table's [{self._safety.table_first_n:g}, "
                     f"{limit:g}] N")
         if fault == Fault.STALE_INPUT:
-            return f"{value:.1f} samples missing in a row; the loop rides through {limit:.0f}"
+            return (f"the stacks held a stale voltage for {value:.0f} samples; the live ride-through "
+                    f"limit was {limit:.0f}")
         if fault == Fault.OVERRUN_STREAK:
             return f"{value:.0f} overruns in a row"
         if fault == Fault.PERSISTENT_SATURATION:

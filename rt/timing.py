@@ -55,6 +55,34 @@ class StageTimer:
                 "p99.9_us": self.percentile(99.9) * us}
 
 
+class StallLog:
+    """The stalls ridden through (samples the stacks held the last answer before a sample, as
+    the engine counts them): how many, the longest and the live limit then, and the least room
+    any stall left under its limit."""
+
+    __slots__ = ("count", "longest", "limit_at_longest", "least_room", "limit_at_least_room")
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.longest = 0.0
+        self.limit_at_longest = math.nan
+        self.least_room = math.inf
+        self.limit_at_least_room = math.nan
+
+    def record(self, held: float, limit: float) -> None:
+        self.count += 1
+        if held > self.longest:
+            self.longest, self.limit_at_longest = held, limit
+        if limit - held < self.least_room:
+            self.least_room, self.limit_at_least_room = limit - held, limit
+
+    def summary(self) -> dict:
+        return {"count": self.count, "longest_samples": self.longest,
+                "limit_at_longest_samples": self.limit_at_longest,
+                "least_room_samples": None if self.count == 0 else self.least_room,
+                "limit_at_least_room_samples": self.limit_at_least_room}
+
+
 class LoopTiming:
     """The stages of one cycle, the link's timing (each answer's age, the period of the incoming
     samples, where the HAL measures them), plus the count of overruns and the periods they
@@ -71,8 +99,9 @@ class LoopTiming:
         self.input_period = StageTimer("input_period")
         self.overruns = 0          # cycles that ended after their deadline
         self.missed_periods = 0    # periods skipped after overruns
+        self.stalls = StallLog()
 
     def summary(self) -> dict:
         out = {name: getattr(self, name).summary() for name in self.STAGES}
-        out.update(overruns=self.overruns, missed_periods=self.missed_periods)
+        out.update(overruns=self.overruns, missed_periods=self.missed_periods, stalls=self.stalls.summary())
         return out

@@ -97,10 +97,11 @@ def _table(cfg, out: ConfigCheck):
     out.items.append(("closed-loop check", "passed at every check point" if stable else "FAILED"))
     rt = table.ride_through
     if rt is not None:
-        out.items.append(("ride-through", f"up to {rt.gap_limit_samples} missing samples bridged (the loop "
-                                          f"survives {rt.max_gap_samples} at {rt.gap_load_n:g} N, its "
-                                          f"worst load); answers up to {rt.answer_budget_periods:.2f} "
-                                          "periods after their sample"))
+        out.items.append(("ride-through", rt.describe(loads, d.sample_rate_hz)))
+        out.items.append(("  per load", rt.reference_text(loads, d.sample_rate_hz)))
+    else:
+        out.items.append(("ride-through", "not analysed by this version (fixed limits: 5 samples, half a "
+                                          "period); rebuild the table (`beamctl gains build`)"))
     robust = getattr(table, "robust", None)
     out.items.append(("robust check", robust_text(robust)))
     out.data.update(table={"path": str(path.resolve()), "sha256": sha, "design": d.kind,

@@ -39,6 +39,19 @@ def integer(*, low: int, high: int) -> Callable[[str], int]:
     return parse
 
 
+def number_list(*, low: float) -> Callable[[str], list[float]]:
+    """Comma-separated finite numbers, each >= ``low``, at least one."""
+    one = number(low=low)
+
+    def parse(text: str) -> list[float]:
+        parts = [p for p in text.split(",") if p.strip()]
+        if not parts:
+            raise argparse.ArgumentTypeError(f"{text!r}: expected numbers >= {low:g}, separated by commas")
+        return [one(p.strip()) for p in parts]
+
+    return parse
+
+
 seconds = number(low=0.0)
 positive = number(low=0.0, inclusive=False)
 steps = number(low=1000, integer=True)

@@ -12,8 +12,9 @@ import numpy as np
 
 from beamctl.common.outputs import check_dir, check_file, replacing, write_text
 from beamctl.config.schema import ConfigError
-from beamctl.gains.build import build_lqg_table, build_table, closed_loop_checks
+from beamctl.gains.build import build_lqg_table, build_table, closed_loop_checks, with_robust
 from beamctl.gains.defaults import DESIGNS, default_table_path, paper_table_path
+from beamctl.gains.ridethrough import REFERENCE
 from beamctl.gains.robust import (
     DEFAULT_BOX,
     box_from_dict,
@@ -105,6 +106,20 @@ def add_parser(sub) -> None:
                 "worst rig held to its own critical load; 1: not so; 2: bad input; 130: Ctrl-C")
     c.set_defaults(run=run_check)
 
+    t = gsub.add_parser("stalls", help="stalls in the time domain: at each load, the live ride-through "
+                        "limit and the shortest stall the simulated rig loses (nominal and the robust check's "
+                        "worst rig; about 10 s a load)")
+    t.add_argument("file", nargs="?", help="gain table (default: the shipped gains/default.yaml)")
+    t.add_argument("--loads", metavar="N,N,...", type=argtypes.number_list(low=0.0),
+                   help="loads in N (default: 2000 N to 100 N below the table's top, every 200 N, and 3300 N)")
+    t.add_argument("--rig", choices=("nominal", "worst", "both"), default="both",
+                   help="the rig(s): nominal, the robust check's worst (recorded in the table), or both")
+    t.add_argument("--plot", metavar="FILE", help="write the limit and the edge versus load as PNG")
+    t.add_argument("--json", action="store_true", help="print one JSON object (progress stays on stderr)")
+    t.epilog = ("exit status 0: at every load a stall of the live limit survived, and the limit below the edge; "
+                "1: not so; 2: bad input")
+    t.set_defaults(run=run_stalls)
+
     s = gsub.add_parser("show", help="gains versus load")
     s.add_argument("file", nargs="?", help="gain table (default: the shipped gains/default.yaml)")
     s.add_argument("--plot", metavar="DIR", help="write gains versus load as PNG into DIR")
@@ -190,7 +205,9 @@ def _build(args: argparse.Namespace) -> int:
               file=sys.stderr, flush=True)
         result = _robust(table, box, None)
         say(_robust_line(result))
-        table = replace(table, robust=table_record(result, args.box or "box B"))
+        with ProgressBar("ride-through over the worst rig") as bar:
+            table = with_robust(model, table, table_record(result, args.box or "box B"), bar)
+            bar.close()
         report["robust"] = table.robust
         with replacing(out) as temp:      # the table keeps its robust check (`gains show`, `config check`)
             write_table(table, temp)
@@ -312,8 +329,11 @@ def _check_one(path: str, table: GainTable, box, args: argparse.Namespace, clien
     if result is not None:
         report.update(result.to_dict(table))
         if args.record:
+            with ProgressBar("ride-through over the worst rig") as bar:
+                recorded = with_robust(model, table, table_record(result, args.box or "box B"), bar)
+                bar.close()
             with replacing(Path(path)) as temp:
-                write_table(replace(table, robust=table_record(result, args.box or "box B")), temp)
+                write_table(recorded, temp)
             report["recorded"] = path
             print(f"recorded the robust check in {path}", file=sys.stderr)
     if args.json:
@@ -376,6 +396,18 @@ def _side_by_side(reports: list[dict]) -> None:
         print(f"  {r['design'][:40]:<40} {'stable' if r['all_stable'] else 'UNSTABLE':>8} {robust:>21}")
 
 
+def _ride_through_json(table: GainTable) -> dict | None:
+    """The ride-through per grid load at the reference operating point (gains/ridethrough.py)."""
+    rt = table.ride_through
+    if rt is None:
+        return None
+    rate = table.design.sample_rate_hz
+    rows = rt.reference_limits(table.loads_n)
+    return {"criterion": rt.criterion, "confidence_sigma": rt.confidence_sigma, "rigs": list(rt.rigs),
+            "reference": dict(REFERENCE), "cap_ms": 1e3 * rt.gap_cap_samples / rate,
+            "per_load_ms": {f"{load:g}": 1e3 * n / rate for load, (n, _) in zip(table.loads_n, rows, strict=True)}}
+
+
 def run_show(args: argparse.Namespace) -> int:
     plot_dir = check_dir(args.plot, "--plot") if args.plot else None
     table = _load(args.file, "show")
@@ -389,7 +421,7 @@ def run_show(args: argparse.Namespace) -> int:
             "content_matches": table.intact, "design": d.kind, "sample_rate_hz": d.sample_rate_hz,
             "io": d.io.to_dict(), "schedule": s.mode, "loads_N": [float(x) for x in table.loads_n],
             "compensator_states": comp.n_states, "all_stable": table.all_stable, "forced": table.forced,
-            "robust": table.robust, "plot": written,
+            "robust": table.robust, "plot": written, "ride_through": _ride_through_json(table),
             "gains_A_y": {"unit": "D in N per unit strain, Ki in N per unit of xi (the summed T H y)",
                           "D": comp.d[:, 0, :].tolist(), "Ki": comp.ki[:, 0, :].tolist()}}, indent=1))
         return 0
@@ -410,6 +442,13 @@ def run_show(args: argparse.Namespace) -> int:
     print(f"check{recorded}: {check}{' (forced)' if table.forced else ''}")
     print(f"content sha256: {'matches' if table.intact else 'DOES NOT MATCH (changed after it was built)'}")
     print(f"robust check: {robust_text(table.robust)}")
+    rt = table.ride_through
+    if rt is not None:
+        print(f"ride-through: {rt.describe(table.loads_n, d.sample_rate_hz)}")
+        print(f"  {rt.reference_text(table.loads_n, d.sample_rate_hz)}")
+    else:
+        print("ride-through: not analysed by this version (fixed limits: 5 samples, half a period); rebuild "
+              "the table (`beamctl gains build`)")
     print()
     step = max(1, len(table.loads_n) // 16)
     if table.gains is not None:
@@ -432,3 +471,49 @@ def run_show(args: argparse.Namespace) -> int:
         path = plots.gains_vs_load(table, plot_dir / "gains_vs_load.png")
         print(f"\nwrote {path}")
     return 0
+
+
+def run_stalls(args: argparse.Namespace) -> int:
+    """The time-domain survival edge against the live limit (simulation/stall.py)."""
+    from beamctl.simulation import stall
+
+    plot = check_file(args.plot, "--plot") if args.plot else None
+    table = load_table(args.file or default_table_path())
+    if table.ride_through is None:
+        raise ConfigError("file", args.file or default_table_path(),
+                          "a table with a ride-through analysis (rebuild it: `beamctl gains build`)")
+    top = float(table.loads_n[-1]) - 100.0
+    loads = sorted(set(args.loads)) if args.loads else sorted(
+        {*np.arange(2000.0, top + 1e-9, 200.0).tolist(), 3300.0, top})
+    rigs = {}
+    if args.rig in ("nominal", "both"):
+        rigs["nominal"] = stall.StallRig(table)
+    if args.rig in ("worst", "both"):
+        worst = stall.worst_rig(table)
+        if worst is None:
+            raise ConfigError("--rig", args.rig, "a table that records its robust check's worst rig "
+                              "(`beamctl gains check --robust --record`)")
+        rigs["worst rig"] = stall.StallRig(table, rig=worst)
+    curves = {}
+    for name, rig in rigs.items():
+        with ProgressBar(f"stalls, {name}") as bar:
+            curves[name] = stall.edges(rig, loads, bar)
+    ok = all(r.limit_samples >= 1 and r.edge_samples > r.limit_samples for rows in curves.values() for r in rows)
+    if plot:
+        stall.edge_figure(curves, plot)
+    if args.json:
+        print(json.dumps({name: [{"load_N": r.load_n, "limit_ms": 1e3 * r.limit_samples / r.rate_hz,
+                                  "edge_ms": 1e3 * r.edge_samples / r.rate_hz, "edge_beyond_cap": r.edge_samples > r.cap_samples,
+                                  "limit_samples": r.limit_samples, "edge_samples": r.edge_samples,
+                                  "rate_hz": r.rate_hz} for r in rows] for name, rows in curves.items()}, indent=1))
+        return 0 if ok else 1
+    for name, rows in curves.items():
+        print(f"{name}: load N, live limit ms, survival edge ms (the shortest stall lost), edge / limit")
+        for r in rows:
+            limit, edge = 1e3 * r.limit_samples / r.rate_hz, 1e3 * r.edge_samples / r.rate_hz
+            beyond = r.edge_samples > r.cap_samples
+            ratio = "-" if beyond or r.limit_samples <= 0 else f"{r.edge_samples / r.limit_samples:.2f}"
+            print(f"  {r.load_n:7.0f} {limit:8.1f} {'>' if beyond else ' '}{edge:8.1f} {ratio:>6}")
+    if plot:
+        print(f"wrote {plot}")
+    return 0 if ok else 1

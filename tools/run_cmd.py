@@ -117,11 +117,17 @@ def _print_summary(args: argparse.Namespace, cfg, service: Service, outcome: Ser
               f"{t['missed_periods']} missed periods")
         age = t["answer_age"]
         if age["count"]:
-            budget_us = cfg.controller.safety.answer_budget_periods * 1e6 / table.design.sample_rate_hz
+            budget_us = service.loop.controller.safety.answer_budget_s * 1e6
             late = outcome.late_answers
             print(f"  answers: age p50 {age['p50_us']:.0f} us, p99 {age['p99_us']:.0f} us, max "
-                  f"{age['max_us']:.0f} us; {late} later than the {budget_us:.0f} us budget; "
+                  f"{age['max_us']:.0f} us; {late} later than the budget ({budget_us:.0f} us at the end); "
                   f"{result.backlog_discarded} queued samples discarded at start")
+        stalls = t.get("stalls", {})
+        if stalls.get("count"):
+            ms = 1e3 / table.design.sample_rate_hz
+            print(f"  stalls ridden through: {stalls['count']}, the longest {stalls['longest_samples'] * ms:.2f} ms "
+                  f"(the live limit then {stalls['limit_at_longest_samples'] * ms:.2f} ms), the least room "
+                  f"under the limit {stalls['least_room_samples'] * ms:.2f} ms")
         tel = result.telemetry
         kept = "" if tel.get("mode", "full") == "full" else f" ({tel['mode']}: of {tel['received']} samples)"
         print(f"  telemetry: {tel.get('written', 0)} records{kept}, {tel.get('dropped', 0)} dropped, "

@@ -8,15 +8,26 @@ import pytest
 import yaml
 
 from beamctl.gains import lqg
-from beamctl.gains.build import build_lqg_table, build_table, check_plan, nominal_rig
+from beamctl.gains.build import build_lqg_table, build_table, check_plan, nominal_rig, ride_through_plan
 from beamctl.gains.compensator import PLANE_CHANNELS
 from beamctl.gains.defaults import LQG_CHAIN, LQG_SETTINGS, default_table_path, paper_table_path
-from beamctl.gains.ridethrough import GapAnalysis, RideThrough, _DelayedPlant, _fold, _places, gap_loop
+from beamctl.gains.ridethrough import (
+    BRIDGES,
+    CONFIDENCE_SIGMA,
+    GrowthAnalysis,
+    RideThrough,
+    _DelayedPlant,
+    _fold,
+    _places,
+    gap_loop,
+    mode1_row,
+)
 from beamctl.gains.rig import RigPlane
 from beamctl.gains.schedule import GainSchedule
 from beamctl.gains.table import GainTableError, content_sha256, load_table, write_table
 from beamctl.models.analysis import critical_load
-from beamctl.models.fe import plane_eigen, plane_indices
+from beamctl.models.fe import build_model
+from beamctl.models.fe import plane_indices
 from beamctl.models.modal import reduce
 from tests.rounding import EPS, assert_within, eigenvector_rounding, product_rounding, symmetric_pencil
 
@@ -127,41 +138,33 @@ def test_the_schedule_interpolates_the_prediction_like_the_other_matrices(shippe
 
 
 def test_a_table_with_prediction_and_ride_through_reads_back_as_written(tmp_path, small_lqg, paper_params):
-    assert small_lqg.ride_through is not None and small_lqg.compensator.predict is not None
+    rt = small_lqg.ride_through
+    assert rt is not None and rt.criterion == "absolute" and small_lqg.compensator.predict is not None
     path = write_table(small_lqg, tmp_path / "t.yaml")
     back = load_table(path, paper_params)
     np.testing.assert_array_equal(back.compensator.predict, small_lqg.compensator.predict)
-    assert back.ride_through == small_lqg.ride_through
     assert back.intact and back.sha256 == small_lqg.sha256
+    b = back.ride_through
+    assert (b.gap_grid_samples, b.loads_n, b.rigs) == (rt.gap_grid_samples, rt.loads_n, rt.rigs)
+    # written to 6 decimals: a growth is read back to within 5e-7 of it
+    np.testing.assert_allclose(b.growth, rt.growth, rtol=0, atol=5.1e-7)
+    assert b.answer_budgets_periods == rt.answer_budgets_periods
     data = yaml.load(path.read_text(), Loader=_LOADER)
-    assert set(data["ride_through"]) == {
-        "growth_limit", "margin", "max_gap_samples", "gap_limit_samples", "gap_load_N", "gap_cap_samples",
-        "max_extra_delay_samples", "answer_budget_periods", "delay_load_N", "delay_step_samples",
-        "delay_cap_samples", "elapsed_s", "max_gap_samples_per_load", "gap_limits_samples",
-        "max_extra_delay_samples_per_load", "answer_budgets_periods"}
+    assert set(data["ride_through"]) == set(RideThrough.FIELDS)
+    critical = critical_load(build_model(small_lqg.model_parameters))
+    assert data["ride_through"]["loads_N"] == [p[0] for p in ride_through_plan(small_lqg, critical)], (
+        "every check load analysed, and every 25 N near and above the critical load")
 
 
-def test_the_per_load_limits_read_back_one_per_grid_load(tmp_path, small_lqg, paper_params):
-    """Written as lists, one value per grid load, read back as they were; the engine's limits
-    the analysis' over the margin, the answer budget on top of the design's own delay."""
+def test_the_growth_is_a_curve_per_analysed_load_that_starts_near_one_and_does_not_fall(small_lqg):
+    """Shape of what the engine reads: [bridge, output, analysed load, gap]; a one-sample gap
+    barely moves the spread (the first sample's growth is within 50 % of 1: the stacks hold one
+    answer), and a longer gap grows it no less."""
     rt = small_lqg.ride_through
-    g = len(small_lqg.loads_n)
-    delay = small_lqg.design.io.delay_samples
-    assert rt.per_load and delay > 0
-    for name in RideThrough.PER_LOAD:
-        assert len(getattr(rt, name)) == g, name
-    assert rt.gap_limits_samples == tuple(n // 2 for n in rt.max_gap_samples_per_load)
-    budgets = [delay + d / 2 for d in rt.max_extra_delay_samples_per_load]
-    assert rt.answer_budgets_periods == pytest.approx(budgets, rel=1e-15)
-    assert rt.max_gap_samples == min(rt.max_gap_samples_per_load)
-    assert rt.answer_budget_periods == pytest.approx(delay + rt.max_extra_delay_samples / 2, rel=1e-15)
-    path = write_table(small_lqg, tmp_path / "t.yaml")
-    data = yaml.load(path.read_text(), Loader=_LOADER)["ride_through"]
-    assert data["gap_limits_samples"] == list(rt.gap_limits_samples)
-    assert data["answer_budgets_periods"] == list(rt.answer_budgets_periods)
-    back = load_table(path, paper_params).ride_through
-    for name in RideThrough.PER_LOAD:
-        assert getattr(back, name) == getattr(rt, name), name
+    assert rt.growth.shape == (len(BRIDGES), 2, len(rt.loads_n), len(rt.gap_grid_samples))
+    assert np.all(rt.growth >= 1.0) and np.all(np.diff(rt.growth, axis=3) >= 0.0)
+    assert np.all(rt.growth[..., 0] < 1.5), rt.growth[..., 0]
+    assert rt.gap_grid_samples[:8] == tuple(range(1, 9)) and rt.gap_cap_samples == 600
 
 
 @pytest.fixture(scope="module")
@@ -185,34 +188,19 @@ def _rewrite(path, edit, rehash: bool) -> None:
     path.write_text(yaml.dump(data, Dumper=_DUMPER, sort_keys=False))
 
 
-def _longer_gap(d):
-    rt = d["ride_through"]
-    rt["max_gap_samples"] = 2 * rt["max_gap_samples"] + 10
-    rt["gap_limit_samples"] = rt["max_gap_samples"] // 2
-
-
-def _more_delay(d):
-    rt = d["ride_through"]
-    rt["max_extra_delay_samples"] = 0.9
-    rt["answer_budget_periods"] = 0.9 / rt["margin"]
-
-
-def _longer_gap_at_the_first_load(d):
-    rt = d["ride_through"]
-    rt["max_gap_samples_per_load"][0] += 10
-    rt["gap_limits_samples"][0] = rt["max_gap_samples_per_load"][0] // 2
+def _smaller_growth(d):
+    rows = d["ride_through"]["growth"]["hold"]["deflection"]
+    rows[-1] = [1.0] * len(rows[-1])
 
 
 @pytest.mark.parametrize("edit", [
-    _longer_gap, _more_delay, _longer_gap_at_the_first_load,
+    _smaller_growth,
     lambda d: d["ride_through"]["answer_budgets_periods"].__setitem__(0, 0.0),
-    lambda d: d["ride_through"].__setitem__("gap_load_N", 0.0),
+    lambda d: d["ride_through"].__setitem__("confidence_sigma", 1.0),
     lambda d: d["compensator"]["predict"][0][0].__setitem__(0, 1.0),
     lambda d: d.pop("ride_through"),
-], ids=["gap", "delay", "gap-per-load", "budget-per-load", "worst-load", "predict",
-        "ride-through-removed"])
+], ids=["growth", "budget-per-load", "sigma", "predict", "ride-through-removed"])
 def test_a_changed_ride_through_or_prediction_is_refused_by_the_content_hash(tmp_path, small_lqg_text, edit):
-    """Changed consistently (the limits still the analysis' over the margin): the hash."""
     path = _written(small_lqg_text, tmp_path)
     _rewrite(path, edit, rehash=False)
     with pytest.raises(GainTableError) as err:
@@ -220,50 +208,43 @@ def test_a_changed_ride_through_or_prediction_is_refused_by_the_content_hash(tmp
     assert err.value.key == "sha256" and "changed after it was built" in str(err.value)
 
 
-def _budget_without_the_design_delay(d):
-    rt = d["ride_through"]
-    rt["answer_budget_periods"] = rt["max_extra_delay_samples"] / rt["margin"]
-
-
-def _worst_gap_not_the_least(d):
-    rt = d["ride_through"]
-    rt["max_gap_samples"] -= 2
-    rt["gap_limit_samples"] = rt["max_gap_samples"] // 2
+def _falling_growth(d):
+    row = d["ride_through"]["growth"]["hold"]["voltage"][0]
+    row[-1] = row[0] - 0.5 if row[0] > 1.5 else 1.0
+    row[-2] = max(row[-1] + 1.0, 2.0)
 
 
 @pytest.mark.parametrize(("edit", "key", "words"), [
     (lambda d: d["compensator"]["predict"][1].pop(), "compensator.predict", "shape"),
-    (lambda d: d["ride_through"].__setitem__("gap_limit_samples", 999), "ride_through.gap_limit_samples",
-     "floor(max_gap_samples / margin)"),
-    (lambda d: d["ride_through"].__setitem__("answer_budget_periods", 7.0),
-     "ride_through.answer_budget_periods", "max_extra_delay_samples / margin"),
-    (lambda d: d["ride_through"].__setitem__("max_gap_samples", 2.5), "ride_through.max_gap_samples",
-     "whole number"),
-    (lambda d: d["ride_through"].pop("margin"), "ride_through.margin", "missing"),
+    (lambda d: d["ride_through"].__setitem__("criterion", "relative"), "ride_through.criterion", "'absolute'"),
+    (lambda d: d["ride_through"].pop("confidence_sigma"), "ride_through.confidence_sigma", "this field"),
+    (lambda d: d["ride_through"].__setitem__("confidence_sigma", 0.0), "ride_through.confidence_sigma", "> 0"),
     (lambda d: d["ride_through"].__setitem__("note", 1), "ride_through.note", "only the fields"),
     (lambda d: d.__setitem__("ride_through", [1, 2]), "ride_through", "mapping"),
-    (lambda d: d["ride_through"]["gap_limits_samples"].pop(), "ride_through.gap_limits_samples",
+    (lambda d: d["ride_through"]["gap_grid_samples"].__setitem__(1, 1), "ride_through.gap_grid_samples",
+     "increasing"),
+    (lambda d: d["ride_through"]["gap_grid_samples"].__setitem__(0, 0.5), "ride_through.gap_grid_samples",
+     "whole numbers >= 1"),
+    (lambda d: d["ride_through"]["growth"]["hold"]["deflection"].pop(), "ride_through.growth.hold.deflection",
+     "one curve per analysed load"),
+    (lambda d: d["ride_through"]["growth"]["hold"]["voltage"][0].pop(), "ride_through.growth.hold.voltage[0]",
+     "one growth >= 1 per gap of the grid"),
+    (lambda d: d["ride_through"]["growth"]["hold"]["voltage"][0].__setitem__(0, 0.5),
+     "ride_through.growth.hold.voltage[0]", ">= 1"),
+    (_falling_growth, "ride_through.growth.hold.voltage[0]", "does not fall"),
+    (lambda d: d["ride_through"]["growth"].__setitem__("predict", {}), "ride_through.growth", "bridges"),
+    (lambda d: d["ride_through"]["growth"]["hold"].pop("voltage"), "ride_through.growth.hold", "outputs"),
+    (lambda d: d["ride_through"].__setitem__("rigs", []), "ride_through.rigs", "naming the rigs"),
+    (lambda d: d["ride_through"]["answer_budgets_periods"].pop(), "ride_through.answer_budgets_periods",
      "one per grid load"),
-    (lambda d: d["ride_through"]["max_gap_samples_per_load"].append(3),
-     "ride_through.max_gap_samples_per_load", "a list of 2 whole numbers >= 0, one per grid load"),
-    (lambda d: d["ride_through"].__setitem__("answer_budgets_periods", 0.5),
-     "ride_through.answer_budgets_periods", "one per grid load"),
     (lambda d: d["ride_through"]["max_extra_delay_samples_per_load"].__setitem__(1, -0.05),
      "ride_through.max_extra_delay_samples_per_load", ">= 0"),
-    (lambda d: d["ride_through"]["max_gap_samples_per_load"].__setitem__(0, 2.5),
-     "ride_through.max_gap_samples_per_load", "whole numbers"),
-    (lambda d: d["ride_through"].pop("answer_budgets_periods"), "ride_through.answer_budgets_periods",
-     "come together"),
-    (lambda d: d["ride_through"]["gap_limits_samples"].__setitem__(0, 999), "ride_through.gap_limits_samples",
-     "floor(max_gap_samples_per_load / margin)"),
     (lambda d: d["ride_through"]["answer_budgets_periods"].__setitem__(1, 0.0),
-     "ride_through.answer_budgets_periods", "+ the design's delay"),
-    (_budget_without_the_design_delay, "ride_through.answer_budget_periods", "+ the design's delay"),
-    (_worst_gap_not_the_least, "ride_through.max_gap_samples", "the least of max_gap_samples_per_load"),
-], ids=["predict-shape", "gap-limit", "budget", "gap-kind", "margin-missing", "unknown-field",
-        "not-a-mapping", "short-list", "long-list", "not-a-list", "negative", "per-load-kind",
-        "one-list-missing", "per-load-gap-limit", "per-load-budget", "budget-without-design-delay",
-        "scalar-not-the-worst"])
+     "ride_through.answer_budgets_periods", "the design's delay"),
+], ids=["predict-shape", "criterion", "sigma-missing", "sigma-zero", "unknown-field", "not-a-mapping",
+        "grid-not-increasing", "grid-not-whole", "curve-missing", "curve-short", "growth-below-one",
+        "growth-falls", "unknown-bridge", "output-missing", "no-rigs", "short-list", "negative-delay",
+        "budget-without-design-delay"])
 def test_a_malformed_ride_through_or_prediction_is_refused_in_one_line_naming_the_key(
         tmp_path, small_lqg_text, edit, key, words):
     """Even with a hash that matches (a file written by something else): each field checked."""
@@ -283,23 +264,20 @@ def test_a_table_written_before_the_prediction_and_the_ride_through_still_loads(
     assert GainSchedule.from_table(old).matrices_at(2500.0).predict is None
 
 
-def test_a_table_written_before_the_per_load_limits_still_loads_with_its_scalars(tmp_path, small_lqg,
-                                                                                small_lqg_text):
-    """Without the lists its answer budget was the extra delay over the margin alone; the engine
-    then applies the scalars at every load."""
+def test_a_table_of_the_relative_criterion_loads_and_the_engine_uses_its_fixed_limits(tmp_path, small_lqg_text):
+    """A section of an earlier version ('the RMS at most doubles': growth_limit) is not a
+    survival criterion: the table loads, its section is not used (None), and the controller
+    takes the fixed limits of a table without an analysis."""
+    from beamctl.rt.config import controller_config
+    from beamctl.rt.controller import LEGACY_GAP_LIMIT, ride_through_limits
+
     path = _written(small_lqg_text, tmp_path)
-
-    def old(d):
-        rt = d["ride_through"]
-        for name in RideThrough.PER_LOAD:
-            rt.pop(name)
-        rt["answer_budget_periods"] = rt["max_extra_delay_samples"] / rt["margin"]
-
-    _rewrite(path, old, rehash=True)
-    rt = load_table(path).ride_through
-    assert not rt.per_load and rt.gap_limits_samples is None and rt.answer_budgets_periods is None
-    assert rt.answer_budget_periods == small_lqg.ride_through.max_extra_delay_samples / 2
-    assert rt.max_gap_samples == small_lqg.ride_through.max_gap_samples
+    old = {"growth_limit": 2.0, "margin": 2.0, "max_gap_samples": 8, "gap_limit_samples": 4}
+    _rewrite(path, lambda d: d.__setitem__("ride_through", old), rehash=True)
+    table = load_table(path)
+    assert table.ride_through is None and table.intact
+    limits = ride_through_limits(table, controller_config())
+    assert limits.grid[0] == LEGACY_GAP_LIMIT and "without a ride-through analysis" in limits.source
 
 
 def test_an_unstable_table_carries_no_ride_through(paper_model):
@@ -309,7 +287,7 @@ def test_an_unstable_table_carries_no_ride_through(paper_model):
 
 
 # ---------------------------------------------------------------------------------------------
-# the limits
+# the growth, against an independent computation
 
 
 @pytest.fixture(scope="module")
@@ -317,46 +295,36 @@ def paper():
     return load_table(paper_table_path())
 
 
-def test_the_shipped_tables_carry_their_ride_through_limits_per_load(shipped, paper):
-    for table, horizon in ((shipped, 600), (paper, 250)):
+def test_the_shipped_tables_carry_an_absolute_ride_through_over_their_rigs(shipped, paper):
+    for table in (shipped, paper):
         rt = table.ride_through
-        assert rt is not None and rt.growth_limit == 2.0 and rt.margin == 2.0 and rt.per_load
-        assert rt.gap_cap_samples == horizon, "0.1 s of samples"
-        assert rt.gap_limit_samples == rt.max_gap_samples // 2
-        delay = table.design.io.delay_samples
-        assert rt.answer_budget_periods == delay + rt.max_extra_delay_samples / 2
-        assert rt.gap_load_n in [c.load_n for c in table.checks]
-        assert len(rt.gap_limits_samples) == len(table.loads_n)
-        assert rt.max_gap_samples == min(rt.max_gap_samples_per_load)
-        assert max(rt.max_gap_samples_per_load) <= horizon
-    # the worst is the top of the grid, far from the rest of it
-    assert shipped.ride_through.gap_limits_samples[-1] == shipped.ride_through.gap_limit_samples
-    assert shipped.ride_through.gap_limits_samples[0] > 50 * shipped.ride_through.gap_limit_samples
+        assert rt is not None and rt.criterion == "absolute" and rt.confidence_sigma == CONFIDENCE_SIGMA
+        analysed = set(rt.loads_n)
+        assert {c.load_n for c in table.checks} <= analysed, "every check load analysed"
+        fine = [x for x in np.arange(3050.0, table.loads_n[-1], 25.0) if x not in analysed]
+        assert not fine, f"near and above the critical load every 25 N: {fine} N missing"
+        assert rt.rigs[0] == "the nominal rig"
+    assert shipped.robust is not None and len(shipped.ride_through.rigs) == 2, (
+        "the shipped table records its robust check and is analysed on its worst rig too")
+    assert "worst rig" in shipped.ride_through.rigs[1]
 
 
-def _mode1(model, load, n):
-    idx = plane_indices(model.n_nodes, "y")
-    _, phi = plane_eigen(model.load_stiffness(load), model.mass, "y", 1)
-    row = np.zeros(n)
-    row[:len(idx)] = phi[idx, 0] @ model.mass[np.ix_(idx, idx)]
-    return row
-
-
-def _simulate(model, table, load, gap, runs, events, spacing, seed):
-    """The deflection's RMS over its stationary RMS at each sample from a gap's first missing
-    sample, in the time domain: the nominal rig's sampled plane (delayed ZOH), the compensator
-    step written out, ``runs`` loops side by side driven by a white force disturbance at the
-    stacks, each with ``events`` gaps ``spacing`` samples apart. In a gap, as the engine runs it:
-    the stacks hold the last answer's force, the compensator predicts (y_hat = P x_c), the
-    integral holds."""
+def _time_domain_growth(model, table, load, gap, runs, events, spacing, seed):
+    """RMS over the stationary RMS of mode 1's modal displacement and of support A's applied
+    force at each sample from a gap's first missing sample, in the time domain: the nominal rig's
+    sampled plane (delayed ZOH), the compensator step written out, ``runs`` loops side by side
+    driven by a white force disturbance at the stacks, each with ``events`` gaps ``spacing``
+    samples apart. In a gap, as the engine bridges it (hold): the stacks hold the last answer's
+    force, the compensator's state and the integral stay."""
     rng = np.random.default_rng(seed)
     comp = table.compensator
     point = GainSchedule.from_table(table).matrices_at(load).plane(comp.plane_states["y"], "y")
     io = list(PLANE_CHANNELS["y"])
     h, period = comp.h[np.ix_(io, io)], comp.period_s
-    plant, c = RigPlane(model, table.design.io, table.design.sample_rate_hz).sampled(load)
+    rig = nominal_rig(model, table)
+    plant, c = rig.sampled(load)
     n, whole = plant.ad.shape[0], plant.whole
-    out = _mode1(model, load, n)
+    out = mode1_row(model, rig, load, n)
     noise = plant.b_now + plant.b_before
     x = np.zeros((n, runs))
     xc = np.zeros((point.a.shape[0], runs))
@@ -365,7 +333,7 @@ def _simulate(model, table, load, gap, runs, events, spacing, seed):
 
     def plant_step(u):
         nonlocal x, applied
-        applied = [u, *applied[:-1]]                                  # u_k, u_k-1, ...
+        applied = [u, *applied[:-1]]
         x = (plant.ad @ x + plant.b_now @ applied[whole] + plant.b_before @ applied[whole + 1]
              + noise @ rng.standard_normal((2, runs)))
         applied = applied[:whole + 2]
@@ -378,72 +346,74 @@ def _simulate(model, table, load, gap, runs, events, spacing, seed):
         xc = point.a @ xc + point.b @ y + point.e @ u
         plant_step(u)
 
-    def missing():
-        nonlocal xc
-        held = applied[0]
-        xc = point.a @ xc + point.b @ (point.predict @ xc) + point.e @ held
-        plant_step(held)
-
-    for _ in range(1500):
+    for _ in range(3000):
         sample()
-    stationary, after = [], np.zeros(spacing)
+    q_st, f_st = [], []
+    q_after, f_after = np.zeros(spacing), np.zeros(spacing)
     for _ in range(events):
         for j in range(spacing):
-            after[j] += np.mean((out @ x) ** 2)
-            missing() if j < gap else sample()
-        for _ in range(50):
-            stationary.append(np.mean((out @ x) ** 2))
+            q_after[j] += np.mean((out @ x) ** 2)
+            f_after[j] += np.mean(applied[0][0] ** 2)
+            plant_step(applied[0]) if j < gap else sample()
+        for _ in range(100):
+            q_st.append(np.mean((out @ x) ** 2))
+            f_st.append(np.mean(applied[0][0] ** 2))
             sample()
-    return np.sqrt(after / events / np.mean(stationary))
+    return np.sqrt(q_after / events / np.mean(q_st)), np.sqrt(f_after / events / np.mean(f_st))
 
 
-def test_a_gap_of_the_engine_s_limit_keeps_the_deflection_within_the_growth_limit_in_the_time_domain(
-        paper_model, shipped):
-    """At the worst load, 200 loops with 30 gaps each: the RMS at each sample after a gap's start
-    is estimated from 6000 samples, to about 1 % (sqrt(2 / 6000) of the variance, halved for the
-    RMS); over the 200 samples followed, and the stationary RMS's own error, 5 % covers it. The
-    time domain follows the analysis' covariance sample by sample, and stays within the growth
-    limit; a gap three times the longest survived passes it many times over."""
+def test_the_growth_of_a_gap_is_the_time_domain_s_at_3300_n(paper_model, shipped):
+    """200 loops with 20 gaps each: the RMS at each sample after a gap's start from 4000
+    samples, to about 1.1 % (sqrt(1/2 x 2 / 4000) of the RMS), the stationary RMS from 2000 x
+    200 to 0.2 %; the largest of 250 such estimates exceeds the true largest by up to about 3
+    sigma: 4 % above, and at most 4 % below the analysis' peak (the analysis bounds every later
+    sample, the time domain follows 250). Support A's force is bounded by the voltage growth
+    (the larger of the plane's two supports)."""
+    load = 3300.0
     rt = shipped.ride_through
-    assert rt.gap_limit_samples >= 1, "the shipped table bridges a gap"
-    load = rt.gap_load_n
-    ratio = _simulate(paper_model, shipped, load, rt.gap_limit_samples, runs=200, events=30, spacing=200,
-                      seed=1)
-    assert ratio.max() <= rt.growth_limit, f"the deflection's RMS grew x{ratio.max():.3f}"
-    comp = shipped.compensator
-    point = GainSchedule.from_table(shipped).matrices_at(load)
-    analysis = GapAnalysis(gap_loop(paper_model, nominal_rig(paper_model, shipped), load, point, comp.h,
-                                    comp.plane_states["y"], comp.period_s))
-    expected, _ = analysis.ratios(rt.gap_limit_samples)
-    k = min(len(expected), len(ratio))
-    np.testing.assert_allclose(ratio[:k], expected[:k], rtol=0.05)
-    far = 3 * rt.max_gap_samples
-    beyond = _simulate(paper_model, shipped, load, far, runs=50, events=5, spacing=200, seed=2)
-    assert beyond.max() > 3 * rt.growth_limit, f"a gap of {far} samples: x{beyond.max():.3f} only"
+    e = rt.loads_n.index(load)
+    for gap in (8, 40):
+        i = rt.gap_grid_samples.index(gap) if gap in rt.gap_grid_samples else None
+        comp = shipped.compensator
+        point = GainSchedule.from_table(shipped).matrices_at(load)
+        analysis = GrowthAnalysis(gap_loop(nominal_rig(paper_model, shipped), load, point, comp.h,
+                                           comp.plane_states["y"], comp.period_s, "hold"))
+        expected = analysis.growth([gap])[:, 0]
+        q, f = _time_domain_growth(paper_model, shipped, load, gap, runs=200, events=20, spacing=250, seed=gap)
+        assert q.max() == pytest.approx(expected[0], rel=0.04), (gap, q.max(), expected)
+        assert f.max() <= 1.04 * expected[1:].max(), (gap, f.max(), expected)
+        if i is not None:
+            assert rt.growth[0, 0, e, i] >= expected[0] * (1 - 1e-6), "the table stores no less"
+    assert q.max() > 1.5, "a 40-sample gap at 3300 N grows the deflection's spread"
 
 
-def test_the_gap_limit_is_the_longest_gap_survived_at_the_worst_load_walked_gap_by_gap(paper_model, shipped):
-    """The search bisects, taking survival to fall with the gap's length: at the worst load every
-    gap up to the limit found is survived and the next is not."""
+def test_the_engine_s_limit_is_the_longest_grid_gap_the_headroom_allows(shipped):
+    """gap_allowed (the engine's function): the longest grid gap N with k g(N) spread <=
+    headroom for both outputs, against a direct scan of the table's curves."""
+    from beamctl.rt.engine import gap_allowed
+
     rt = shipped.ride_through
-    comp = shipped.compensator
-    point = GainSchedule.from_table(shipped).matrices_at(rt.gap_load_n)
-    analysis = GapAnalysis(gap_loop(paper_model, nominal_rig(paper_model, shipped), rt.gap_load_n, point,
-                                    comp.h, comp.plane_states["y"], comp.period_s))
-    peaks = [analysis.ratios(n)[0].max() for n in range(1, rt.max_gap_samples + 2)]
-    assert all(p <= rt.growth_limit for p in peaks[:-1]) and peaks[-1] > rt.growth_limit, peaks
-    assert peaks == sorted(peaks), "the peak grows with the gap"
+    grid = np.asarray(rt.gap_grid_samples, dtype=float)
+    for e in (0, len(rt.loads_n) // 2, len(rt.loads_n) - 1):
+        curves = np.ascontiguousarray(rt.growth[:, :, e, :])
+        for aq, av in ((1e9, 1e9), (300.0, 80.0), (30.0, 5.0), (1.0, 1.0), (0.5, 1e9)):
+            within = [n for n, gq, gv in zip(grid, curves[0, 0], curves[0, 1], strict=True)
+                      if gq <= aq and gv <= av]
+            # the grid's curves do not fall: what is allowed is a prefix of the grid
+            direct = int(max(within)) if within else 0
+            assert len(within) == (list(grid).index(direct) + 1 if within else 0)
+            got = int(gap_allowed(curves.ravel(), 0, grid, 0, len(grid), aq, av))
+            assert got == direct, (rt.loads_n[e], aq, av, got, direct)
+
+
+# ---------------------------------------------------------------------------------------------
+# the delay
 
 
 def _per_load_cases(table):
-    """(grid index, load, the check loads in the grid intervals next to it with their matrices)
-    of three grid loads of ``table``: the lowest and a middle one whose gap is under a quarter of
-    the horizon, and the highest that reaches the horizon (or the grid's top)."""
-    rt = table.ride_through
+    """(grid index, load, the check loads next to it with their matrices) of three grid loads."""
     loads = list(table.loads_n)
-    below = [i for i, n in enumerate(rt.max_gap_samples_per_load) if 0 < n < rt.gap_cap_samples // 4]
-    capped = [i for i, n in enumerate(rt.max_gap_samples_per_load) if n >= rt.gap_cap_samples]
-    picks = [below[0], below[len(below) // 2], (capped or below)[-1]]
+    picks = [0, len(loads) // 2, len(loads) - 1]
     plan = check_plan(table)
     cases = []
     for i in picks:
@@ -453,37 +423,19 @@ def _per_load_cases(table):
     return cases
 
 
-@pytest.mark.parametrize("which", ["shipped", "paper"])
-def test_the_per_load_gap_is_an_independent_full_search_s_and_never_more(paper_model, shipped, paper, which):
-    """At three grid loads: the per-load search (started from the load above) against
-    GapAnalysis.max_gap without a start or bound, at the grid load and at the check loads of the
-    intervals next to it (whose limit may have replaced the grid load's): never more than the
-    grid load's own, and equal to it or to a neighbouring check load's; every gap up to it is
-    survived there (survival falls with the gap's length at these loads), the next one not."""
-    table = {"shipped": shipped, "paper": paper}[which]
-    rt = table.ride_through
+def _radius(model, table, point, load, extra):
+    chain = replace(table.design.io, delay_samples=round(table.design.io.delay_samples + extra, 10))
+    rig = RigPlane(model, chain, table.design.sample_rate_hz)
     comp = table.compensator
-    rig = nominal_rig(paper_model, table)
-
-    def analysis(load, point):
-        loop = gap_loop(paper_model, rig, load, point, comp.h, comp.plane_states["y"], comp.period_s)
-        return GapAnalysis(loop)
-
-    for i, load, near in _per_load_cases(table):
-        value = rt.max_gap_samples_per_load[i]
-        full = {at: analysis(at, point).max_gap(rt.gap_cap_samples) for at, point in near}
-        assert value <= full[load], (load, value, full)
-        assert value == full[load] or value in [full[at] for at in full if at != load], (load, value, full)
-        own = analysis(load, dict(near)[load])
-        assert all(own.survives(n) for n in range(1, value + 1))
-        assert value == rt.gap_cap_samples or not own.survives(value + 1)
+    m = rig.loop_matrix(load, point, comp.h, comp.plane_states["y"], comp.period_s)
+    return float(np.max(np.abs(np.linalg.eigvals(m))))
 
 
 @pytest.mark.parametrize("which", ["shipped", "paper"])
 def test_the_per_load_delay_is_stable_up_to_it_with_rig_plane_s_own_sampling(paper_model, shipped, paper,
                                                                               which):
-    """At the same grid loads, with one matrix exponential a delay: stable at every grid delay
-    up to the load's limit, unstable one step above it (unless the cap)."""
+    """At grid loads, with one matrix exponential a delay: stable at every grid delay up to the
+    load's limit, unstable one step above it (unless the cap)."""
     table = {"shipped": shipped, "paper": paper}[which]
     rt = table.ride_through
     step = rt.delay_step_samples
@@ -497,25 +449,9 @@ def test_the_per_load_delay_is_stable_up_to_it_with_rig_plane_s_own_sampling(pap
         assert rt.answer_budgets_periods[i] == table.design.io.delay_samples + limit / 2
 
 
-def test_the_gap_search_gallops_from_a_start_above_or_below_the_answer(paper_model, shipped):
-    """At the worst load of the shipped LQG: the same answer from no start, from below it and
-    from above it (where the gap of the start is lost)."""
-    rt = shipped.ride_through
-    comp = shipped.compensator
-    point = GainSchedule.from_table(shipped).matrices_at(rt.gap_load_n)
-    rig = nominal_rig(paper_model, shipped)
-
-    def search(start):
-        loop = gap_loop(paper_model, rig, rt.gap_load_n, point, comp.h, comp.plane_states["y"], comp.period_s)
-        return GapAnalysis(loop).max_gap(rt.gap_cap_samples, start=start)
-
-    assert {search(s) for s in (None, 0, 1, rt.max_gap_samples, 3 * rt.max_gap_samples, 500)} == {
-        rt.max_gap_samples}
-
-
 def test_a_check_load_between_grid_loads_that_survives_less_lowers_the_lesser_end():
-    """The engine takes the lesser end of a grid interval: a check load inside it with a lower
-    limit than that end replaces it (the upper on a tie); one at a grid load replaces that load's."""
+    """The delay's limits per grid load: a check load inside an interval with a lower limit than
+    its lesser end replaces that end (the upper on a tie); one at a grid load replaces that load's."""
     loads = np.array([0.0, 100.0, 200.0])
     plan = [(0.0, None, None), (50.0, None, None), (100.0, None, None), (150.0, None, None),
             (175.0, 100.0, None), (200.0, None, None), (100.0, 0.0, None)]
@@ -527,44 +463,6 @@ def test_a_check_load_between_grid_loads_that_survives_less_lowers_the_lesser_en
     assert values == [30, 20, 12] and sources[2] == 150.0
     _fold(values, sources, 0, 1, 5, 50.0)
     assert values == [30, 5, 12] and sources[1] == 50.0
-
-
-def _radius(model, table, point, load, extra):
-    chain = replace(table.design.io, delay_samples=round(table.design.io.delay_samples + extra, 10))
-    rig = RigPlane(model, chain, table.design.sample_rate_hz)
-    comp = table.compensator
-    m = rig.loop_matrix(load, point, comp.h, comp.plane_states["y"], comp.period_s)
-    return float(np.max(np.abs(np.linalg.eigvals(m))))
-
-
-@pytest.mark.parametrize("which", ["shipped", "paper-mode", "small"])
-def test_the_delay_limit_is_stable_at_every_grid_delay_up_to_it_and_not_just_above(
-        paper_model, shipped, small_lqg, which):
-    """With RigPlane's own sampling (one matrix exponential a delay), at the worst load: stable
-    at every grid delay up to the limit, unstable one step above; at the other check loads
-    stable at the limit. The shipped LQG tolerates no extra delay at 4000 N (0.05 sample is
-    unstable there), the paper's switching 0.15 sample at 3500 N, the small LQG table the cap."""
-    table = {"shipped": shipped, "small": small_lqg,
-             "paper-mode": build_table(paper_model, mode="paper")}[which]
-    rt = table.ride_through
-    step = rt.delay_step_samples
-    plan = check_plan(table)
-    if rt.delay_load_n is None:
-        assert which == "small" and rt.max_extra_delay_samples == rt.delay_cap_samples
-        assert all(_radius(paper_model, table, point, load, rt.delay_cap_samples) < 1.0
-                   for load, _, point in plan)
-        return
-    if which == "paper-mode":
-        assert (rt.max_extra_delay_samples, rt.delay_load_n) == (0.15, 3500.0)
-    worst = [(load, point) for load, _, point in plan if load == rt.delay_load_n]
-    grid = [round(k * step, 10) for k in range(int(round(rt.max_extra_delay_samples / step)) + 1)]
-    for load, point in worst:
-        radii = [_radius(paper_model, table, point, load, d) for d in grid]
-        assert max(radii) < 1.0, list(zip(grid, radii, strict=True))
-    assert max(_radius(paper_model, table, point, load, rt.max_extra_delay_samples + step)
-               for load, point in worst) >= 1.0
-    assert all(_radius(paper_model, table, point, load, rt.max_extra_delay_samples) < 1.0
-               for load, _, point in plan[::3])
 
 
 def test_the_delay_grid_s_sampling_is_rig_plane_s(paper_model, shipped):
@@ -581,8 +479,3 @@ def test_the_delay_grid_s_sampling_is_rig_plane_s(paper_model, shipped):
         for name in ("ad", "b_now", "b_before"):
             a, b = getattr(ours, name), getattr(theirs, name)
             assert np.abs(a - b).max() <= 1e-8 * np.abs(b).max() + 1e-300, (extra, name)
-
-
-def test_the_check_plan_and_the_analysis_cover_the_same_loads(shipped):
-    assert len(check_plan(shipped)) == len(shipped.checks)
-    assert shipped.ride_through.delay_load_n in [c.load_n for c in shipped.checks]

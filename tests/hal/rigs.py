@@ -71,16 +71,17 @@ def make_plant(**overrides) -> Plant:
 
 
 def shipped_limits(load_n: float, table=TABLE) -> np.ndarray:
-    """The ride-through limits a controller with the shipped settings applies at ``load_n``:
-    rows of (samples missing in a row, late answers in a row, answer budget in periods), one
-    per grid interval of ``table`` whose range holds the load (two at a grid point: the
-    schedule's hysteresis decides which is in use). From the table's ride-through analysis
-    (rt.controller.ride_through_limits, the configuration's defaults); per grid interval the
-    lesser of its two ends, as the engine takes them."""
+    """The ride-through limits a controller with the shipped settings applies at ``load_n``
+    below the critical load, where a gap's growth stays near 1 and the live limit is its cap
+    (rt.controller.ride_through_limits, the configuration's defaults): rows of (samples missing
+    in a row, late answers in a row, answer budget in periods), one per grid interval of
+    ``table`` whose range holds the load (two at a grid point: the schedule's hysteresis decides
+    which is in use); the budget per interval the lesser of its two ends, as the engine takes
+    them."""
     limits = ride_through_limits(table, controller_config())
     loads = np.asarray(table.loads_n, dtype=float)
-    rows = [np.minimum(limits[i], limits[i + 1]) for i in range(len(loads) - 1)
-            if loads[i] <= load_n <= loads[i + 1]]
+    rows = [(limits.gap_cap, limits.late_cap, min(limits.budgets[i], limits.budgets[i + 1]))
+            for i in range(len(loads) - 1) if loads[i] <= load_n <= loads[i + 1]]
     return np.array(rows)
 
 

@@ -107,12 +107,13 @@ class ScriptedDaq:
 
 @pytest.fixture
 def scripted():
-    """Makes CAN backends (2500 Hz, rate check off) on scripted buses, each with its DAQ."""
+    """Makes CAN backends (2500 Hz, rate check off, each frame read in turn: ``newest_only``
+    False unless asked for) on scripted buses, each with its DAQ."""
     backends = []
 
     def make(**settings) -> ScriptedDaq:
         backends.append(ScriptedBackend(RATE_HZ, "scripted", f"scripted-{len(backends)}",
-                                        **{"rate_tolerance": 0.0, **settings}).open())
+                                        **{"rate_tolerance": 0.0, "newest_only": False, **settings}).open())
         return ScriptedDaq(backends[-1])
 
     yield make

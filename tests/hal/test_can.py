@@ -60,7 +60,7 @@ def with_crc(codec, data: bytes) -> bytes:
 @pytest.fixture
 def pair(request):
     channel = f"garbage-{request.node.name}"
-    backend = CanBackend(2500.0, "virtual", channel).open()
+    backend = CanBackend(2500.0, "virtual", channel, newest_only=False).open()
     daq = Daq(channel)
     daq.load()
     yield backend, daq
@@ -141,7 +141,7 @@ def test_a_payload_with_a_wrong_crc_never_reaches_the_law(payload, sequence):
     """Random bytes that decode inside the DBC ranges, with a sequence the receiver would take:
     only the CRC stands between them and the stacks."""
     channel = f"crc-{sequence}-{payload.hex()}"
-    backend = CanBackend(2500.0, "virtual", channel).open()
+    backend = CanBackend(2500.0, "virtual", channel, newest_only=False).open()
     daq = Daq(channel)
     try:
         daq.load()
@@ -336,7 +336,7 @@ def test_error_frames_are_counted_and_bus_off_is_a_lost_connection(pair):
 
 def test_no_sample_before_the_first_load_value(request):
     channel = f"noload-{request.node.name}"
-    backend = CanBackend(2500.0, "virtual", channel).open()
+    backend = CanBackend(2500.0, "virtual", channel, newest_only=False).open()
     daq = Daq(channel)
     try:
         daq.strains()
@@ -599,7 +599,7 @@ BATCHES = [
 
 
 def _run_batches(interface: str, channel: str):
-    backend = CanBackend(2500.0, interface, channel, rate_tolerance=0.0).open()
+    backend = CanBackend(2500.0, interface, channel, rate_tolerance=0.0, newest_only=False).open()
     daq = Daq(channel, interface)
     samples, answers = [], []
     try:
@@ -643,3 +643,26 @@ def test_the_raw_path_of_the_local_bus_and_the_message_path_agree():
     kinds = ("extended_ids", "remote_frames", "unknown_ids", "wrong_length", "crc_errors", "out_of_range",
              "error_frames", "sequence_repeated", "sequence_behind", "samples_missed")
     assert [status_v[k] for k in kinds] == [1] * len(kinds), status_v
+
+
+def test_after_a_stall_a_read_takes_what_queued_and_returns_the_newest_sample(scripted):
+    """The wire contract (hal/beamctl.dbc): the DAQ waits for the answer to its newest sample.
+    Five samples queued while the loop was held up: one read returns the fifth, the four before
+    it counted as missed (the controller bridges them), its strains and the load with it; a
+    sample that follows in order is then missed 0. A bad frame among those queued is refused
+    and counted, as in turn."""
+    daq = scripted(newest_only=True)
+    daq.load(0, k=0)
+    daq.strains(0, k=0)
+    assert daq.samples() == [(0, 0)]
+    for k in range(1, 5):
+        daq.strains(k, k=k)
+    daq.frame(0x7FF, b"\x01\x02", k=4.5)
+    daq.strains(5, k=5, values=(2e-5, -1e-5, 0.0, 4e-6))
+    sample = daq.backend.read(timeout=0.01)
+    assert (sample.sequence, sample.missed) == (5, 4), "the newest, four missed before it"
+    np.testing.assert_allclose(sample.strains, [2e-5, -1e-5, 0.0, 4e-6], atol=2.6e-7,
+                               err_msg="the newest sample's strains, within half the resolution")
+    assert daq.backend.status()["unknown_ids"] == 1
+    daq.strains(6, k=6)
+    assert daq.samples() == [(6, 0)]

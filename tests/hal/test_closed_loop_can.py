@@ -66,7 +66,10 @@ def test_beam_held_straight_at_3000_N_then_safe_when_the_daq_stops():
     assert held.max() < 0.03e-3, f"deflection in the second second up to {held.max() * 1e3:.4f} mm"
     assert result.fault == Fault.STALE_INPUT.name, result.reason
     silent, gap = at_fault[0]
-    assert gap in shipped_limits(3000.0)[:, 0], f"gap limit {gap}: not the table's at 3000 N"
+    cap = shipped_limits(3000.0)[:, 0].max()
+    assert 1 <= gap <= cap, (
+        f"live gap limit {gap} samples at the fault: the table's growth against the measured spreads "
+        f"gives 1 to its cap {cap:g} (tests/rt/test_engine.py checks its value)")
     # the loop's read time-outs end at the deadline (and a tenth of a period past it, if the
     # sum of the time-outs falls short of it by a rounding)
     assert gap + 1 <= silent <= gap + 1.1 + 1e-9, (
@@ -171,7 +174,7 @@ def test_samples_queued_before_the_first_read_are_discarded_and_counted(tmp_path
     """The DAQ streams from the moment the bus is open (wallclock pace); what queued before the
     loop was ready (here at least 150 samples) is dropped unanswered: the loop arms on the
     newest of them, and the first sample it answers after that is the one that follows it,
-    never one of the backlog."""
+    never one of the backlog; a sample skipped later (the newest after a stall) is counted."""
     backlog = 150
     rig = CanRig(pace="wallclock", load={"start": 1000.0, "end": 1000.0})
     controller = Controller(TABLE, SHIPPED)
@@ -189,11 +192,18 @@ def test_samples_queued_before_the_first_read_are_discarded_and_counted(tmp_path
         f"{result.backlog_discarded} samples discarded with {backlog} or more queued")
     assert result.hal["backlog_discarded"] == result.backlog_discarded
     _, records = read_telemetry(tmp_path / "backlog.btl")
-    sequences = records[(records[:, COL["flags"]].astype(int) & FLAG_NO_NEW_SAMPLE) == 0, COL["sequence"]]
+    answered = records[(records[:, COL["flags"]].astype(int) & FLAG_NO_NEW_SAMPLE) == 0]
+    sequences = answered[:, COL["sequence"]]
     assert sequences[0] == (result.backlog_discarded + 1) % 256, (
         f"the first sample answered after arming is {sequences[0]:.0f}, not the one after the newest "
         f"queued ({result.backlog_discarded})")
-    assert np.all(np.diff(sequences) % 256 == 1), "answered one by one, none skipped"
+    # after arming, a stall of this process (wallclock pace, a busy machine) lets samples queue:
+    # the newest is answered and the ones skipped count as the time the stacks held their voltage
+    jump = np.diff(sequences) % 256 - 1
+    held = answered[1:, COL["held_samples"]]
+    assert np.all(held >= jump), (
+        f"samples skipped after arming without being counted as held: jumps {jump[held < jump][:5]}, "
+        f"held {held[held < jump][:5]}")
 
 
 def test_a_daq_waiting_for_its_first_answer_gets_it_though_the_backlog_is_discarded():
@@ -248,7 +258,7 @@ def test_a_streak_of_late_answers_beyond_the_table_s_limit_faults():
     assert result.fault == Fault.LATE_ANSWERS.name, result.reason
     limit = plan["limit"]
     limits = shipped_limits(1500.0)
-    assert any(row[1] == limit and np.isclose(row[2], plan["budget_s"] * RATE_HZ, rtol=1e-12, atol=0)
+    assert any(1 <= limit <= row[1] and np.isclose(row[2], plan["budget_s"] * RATE_HZ, rtol=1e-12, atol=0)
                for row in limits), (
         f"late-answer limit {limit}, budget {plan['budget_s'] * RATE_HZ:g} periods: not the table's "
         f"at 1500 N")

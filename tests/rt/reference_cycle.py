@@ -15,23 +15,24 @@ A new sample:
    (STRAIN_NOT_FINITE) or beyond the strain limit (STRAIN_OUT_OF_RANGE), channels in order; then
    the load-cell value non-finite (LOAD_NOT_FINITE) or outside the sensor's range
    (LOAD_OUT_OF_SENSOR_RANGE).
-2. (RUNNING only) the samples the source skipped before this one (``sample.missed``): more than
-   the gap limit fault STALE_INPUT; otherwise, if still RUNNING and the law is on, each is bridged
-   by one prediction step of the compensator (the integral held, the stacks holding their
-   voltages): y_hat = P x_c (the table's ``predict`` at the schedule's load; without one, the
-   last measured strains), x_c <- A x_c + B y_hat + E u_applied.
+2. (RUNNING only) the stall ridden through: the stacks held the last answer for the samples the
+   source skipped before this one (``sample.missed``) or for the silence before it, whichever is
+   longer (floor(time since the previous sample / period - 0.5)); a stall longer than the live
+   limit faults STALE_INPUT; otherwise it is bridged by holding the estimate: the compensator's
+   state and the integral stay as they were, and the newest sample enters the normal step.
 3. Then, RUNNING: the controlled step (``_control``): the load filter and the schedule (the
    filtered load leaving the grid faults LOAD_OUT_OF_TABLE_RANGE), q, the integral with
    anti-windup, the law, allocation with the clamp to [V_min, V_max], excitation, the fade-in,
-   the applied forces, the compensator's update and the saturation count (saturation_time x rate
-   saturated samples in a row fault PERSISTENT_SATURATION).
+   the applied forces, the compensator's update, the moving statistics and the live limit (below),
+   and the saturation count (saturation_time x rate saturated samples in a row fault
+   PERSISTENT_SATURATION).
    Any other state: q is still estimated from the sample; FAULT and STOPPING advance the ramp to
    bias (a stop ends in STOPPED the call after the ramp has reached bias); the applied forces.
 
 No sample (``step(None, silent_periods)``): the voltages hold. ``silent_periods`` is the time
 since the last sample in periods (None: one period per call since the last sample); a RUNNING
-controller faults STALE_INPUT once floor(silent_periods) exceeds the gap limit (or the silence
-is not a number). FAULT and
+controller faults STALE_INPUT once floor(silent_periods) exceeds the live limit's whole samples
+(or the silence is not a number). FAULT and
 STOPPING advance the ramp.
 
 Between cycles: ``answer_sent(age_s)``: an answer later than the budget is late, more than the
@@ -40,10 +41,16 @@ budget ends the streak; NaN (not measured) counts nothing. ``cycle_overran()``: 
 streak grows and faults OVERRUN_STREAK (in any state) when it reaches the configured streak;
 ``cycle_on_time()`` ends it.
 
-The ride-through limits (the gap limit, the late-answer limit and the answer budget) are the
-table's ride-through analysis tightened by the configuration, per grid point
-(``rt.controller.ride_through_limits``); the cycle uses those of the grid interval in use, the
-one from the schedule's grid point to the next (the lesser of its two ends).
+The ride-through (gains/ridethrough.py, ``rt.controller.ride_through_limits``). The live limit is
+the longest gap of the table's grid whose growth (of the interval between the analysed loads that
+holds the filtered load) k x g x spread keeps within the headroom, for the deflection and the
+voltages both, capped by the configuration: spread_q = the larger over the planes of sqrt(var q_1)
+times mode 1's strain at the gauges, headroom_q = strain limit - the largest |mean strain|;
+spread_v = the largest sqrt(var V_i), headroom_v = the least of V_max - mean V_i, mean V_i - V_min.
+The means and variances are exponential (coefficient 1 - exp(-T / 0.1 s)) over the controlled
+samples; a start sets the means where the signals are and the variances so that a growth of 10 is
+allowed. The late-answer limit is the live limit capped by the configuration; the answer budget
+the table's per grid point (the lesser of a grid interval's ends), tightened by the configuration.
 
 Faults latch: the first wins until an operator re-arms, the state becomes FAULT and the
 voltages ramp linearly from where they were to bias in ramp_time x rate samples, then hold it
@@ -59,7 +66,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from beamctl.rt.config import ControllerConfig
-from beamctl.rt.controller import ride_through_limits
+from beamctl.rt.controller import SPREAD_TIME_S, START_GROWTH, ride_through_limits
 from beamctl.rt.engine import RECORD_COLUMNS
 from beamctl.rt.safety import Fault, State, TransitionError
 
@@ -81,6 +88,7 @@ BRIDGED = 128
 # 1e-12, far above the few ulps of the coefficients and far below any real excess) counts as
 # fitting: a force that needs exactly the whole range is not a saturation.
 ROUNDING = 1e-12
+CAP = 4.0e18                # the engine's cap on a count of samples (int64)
 
 MATRIX_NAMES = ("a", "b", "e", "c", "d", "ki")
 
@@ -162,12 +170,18 @@ class ReferenceController:
             self.grid["predict"] = np.asarray(predict, dtype=float)
         self.slope = {m: _slopes(v, self.loads) for m, v in self.grid.items()}
         n = comp.n_states
-        # the ride-through limits (the table's analysis, tightened by the configuration): per
-        # grid point, [samples missing in a row, late answers in a row, answer budget in periods];
-        # a grid interval rides through what both its ends ride through
-        limits = np.asarray(ride_through_limits(table, config), dtype=float)
-        limits = np.broadcast_to(limits, (len(self.loads), 3)) if limits.ndim == 1 else limits
-        self.interval_limits = np.minimum(limits, np.vstack([limits[1:], limits[-1:]]))
+        # the ride-through (the table's analysis, tightened by the configuration)
+        limits = ride_through_limits(table, config)
+        budgets = np.asarray(limits.budgets, dtype=float)
+        self.interval_budgets = np.minimum(budgets, np.concatenate([budgets[1:], budgets[-1:]]))
+        self.growth_loads = [float(v) for v in limits.growth_loads]
+        self.growth = np.asarray(limits.growth, dtype=float)      # [interval, bridge, output, gap]
+        self.gap_grid = [float(v) for v in limits.grid]
+        self.sigma = limits.confidence_sigma
+        self.gap_cap, self.late_cap = limits.gap_cap, limits.late_cap
+        self.stat_alpha = 1.0 - math.exp(-self.period_s / SPREAD_TIME_S)
+        c0_phi = np.linalg.inv(self.c0_phi_inv)
+        self.mode1_strain = [float(np.abs(c0_phi[[0, 2], 0]).max()), float(np.abs(c0_phi[[1, 3], 1]).max())]
 
         # -- state ------------------------------------------------------------------------------------
         self.record = np.zeros(len(RECORD_COLUMNS))
@@ -208,22 +222,84 @@ class ReferenceController:
         self.max_overrun_streak = 0
         self.bridged_total = 0
         self.longest_gap = 0
+        # the moving statistics of the ride-through and the live limit (samples)
+        self.q_mean, self.q_var = [0.0, 0.0], [0.0, 0.0]
+        self.y_mean = [0.0] * 4
+        self.v_mean, self.v_var = [0.0] * 6, [0.0] * 6
+        self.live_limit = 0.0
 
-    # the ride-through limits of the grid interval in use
+    # the ride-through limits now
     @property
-    def gap_limit(self) -> int:
-        """Samples missing in a row that are bridged; more fault STALE_INPUT."""
-        return int(self.interval_limits[self.index, 0])
+    def gap_limit(self) -> float:
+        """The live limit: a stall of more samples than this faults STALE_INPUT."""
+        return self.live_limit
 
     @property
     def late_limit(self) -> int:
         """Late answers in a row that are ridden through; more fault LATE_ANSWERS."""
-        return int(self.interval_limits[self.index, 1])
+        return int(min(self.live_limit, self.late_cap))
 
     @property
     def answer_budget_s(self) -> float:
         """An answer sent later than this after its sample arrived is late."""
-        return self.interval_limits[self.index, 2] * self.period_s
+        return self.interval_budgets[self.index] * self.period_s
+
+    def _stats_start(self) -> None:
+        """At a start: the means where the signals are, the variances that allow a growth of
+        START_GROWTH at the headroom that leaves."""
+        k = self.sigma * START_GROWTH
+        self.y_mean = [float(y) if math.isfinite(y) else 0.0 for y in self.strains]
+        headroom_q = self.strain_limit - max(abs(y) for y in self.y_mean)
+        for p in range(2):
+            q = float(self.q[p])
+            self.q_mean[p] = q if math.isfinite(q) else 0.0
+            ok = headroom_q > 0.0 and self.mode1_strain[p] > 0.0
+            self.q_var[p] = (headroom_q / (k * self.mode1_strain[p])) ** 2 if ok else 0.0
+        for j, v in enumerate(self.voltages):
+            self.v_mean[j] = float(v)
+            h = min(self.v_max - v, v - self.v_min)
+            self.v_var[j] = (h / k) ** 2 if h > 0.0 else 0.0
+        self._update_limit()
+
+    def _stats_update(self) -> None:
+        """One controlled sample into the exponential means and variances, then the limit."""
+        a = self.stat_alpha
+        for p in range(2):
+            d = float(self.q[p]) - self.q_mean[p]
+            self.q_mean[p] += a * d
+            self.q_var[p] = (1.0 - a) * (self.q_var[p] + a * d * d)
+        for j in range(4):
+            self.y_mean[j] += a * (float(self.strains[j]) - self.y_mean[j])
+        for j in range(6):
+            d = float(self.voltages[j]) - self.v_mean[j]
+            self.v_mean[j] += a * d
+            self.v_var[j] = (1.0 - a) * (self.v_var[j] + a * d * d)
+        self._update_limit()
+
+    def _update_limit(self) -> None:
+        """The live limit from the growth the headroom allows, at the filtered load."""
+        r = self.record
+        spread_q = max(math.sqrt(self.q_var[p]) * self.mode1_strain[p] for p in range(2))
+        spread_v = max(math.sqrt(v) for v in self.v_var)
+        headroom_q = self.strain_limit - max(abs(y) for y in self.y_mean)
+        headroom_v = min(min(self.v_max - m, m - self.v_min) for m in self.v_mean)
+        allowed_q = headroom_q / (self.sigma * spread_q) if spread_q > 0.0 else math.inf
+        allowed_v = headroom_v / (self.sigma * spread_v) if spread_v > 0.0 else math.inf
+        if not headroom_q > 0.0:
+            allowed_q = 0.0
+        if not headroom_v > 0.0:
+            allowed_v = 0.0
+        r[COL["spread_deflection"]] = spread_q
+        r[COL["spread_voltage_V"]] = spread_v
+        interval = max(bisect.bisect_right(self.growth_loads, self.filtered) - 1, 0)
+        curves = self.growth[interval, 0]          # the one bridge: hold
+        limit = 0.0
+        for n, g_q, g_v in zip(self.gap_grid, curves[0], curves[1], strict=True):
+            if g_q > allowed_q or g_v > allowed_v:
+                break
+            limit = n
+        self.live_limit = min(limit, self.gap_cap)
+        r[COL["gap_limit_samples"]] = self.live_limit
 
     # == lifecycle (every command carried out records the state and the fault) ====================
     @property
@@ -294,6 +370,7 @@ class ReferenceController:
             self._trip(Fault.STRAIN_NOT_FINITE, math.nan, self.strain_limit)
         else:
             self.x = self.start_map @ self.strains
+            self._stats_start()
         self._record_state()
 
     def request_stop(self) -> None:
@@ -387,27 +464,39 @@ class ReferenceController:
             r[COL["input_period_us"]] = math.nan
             self.silent_calls += 1
             silent = self.silent_calls if silent_periods is None or silent_periods < 0 else silent_periods
-            # the samples due in that time are missing: floor(silent) of them; a silence of
-            # gap_limit + 1 periods or more faults, and so does an endless or unknown one (inf, NaN)
-            if running and not silent < self.gap_limit + 1:
+            # the samples due in that time are missing: floor(silent) of them; a silence of the
+            # limit's whole samples + 1 periods or more faults, and so does an endless or unknown one
+            if running and not silent < int(self.gap_limit) + 1:
                 self._trip(Fault.STALE_INPUT, silent, self.gap_limit)
         else:
             self.silent_calls = 0
             self.time = sample.timestamp
-            r[COL["input_period_us"]] = (sample.timestamp - r[COL["time_s"]]) * 1e6
+            since = sample.timestamp - r[COL["time_s"]]
+            r[COL["input_period_us"]] = since * 1e6
             r[COL["time_s"]] = sample.timestamp
             r[COL["sequence"]] = sample.sequence
-            missed = int(sample.missed)
+            r[COL["held_samples"]] = 0.0
+            gap = float(sample.missed)
             if running:
                 self._check_inputs(sample.strains, sample.axial_load)
-                if missed > self.gap_limit:
-                    self._trip(Fault.STALE_INPUT, missed, self.gap_limit)
-                elif missed > 0 and self.state == State.RUNNING and self.law:
-                    self._bridge(missed)
-                    flags |= BRIDGED
-                    r[COL["bridged"]] = missed
-                    self.bridged_total += missed
-                self.longest_gap = max(self.longest_gap, min(missed, int(4.0e18)))   # the engine's cap
+                missed = 0 if gap < 0.0 else int(gap) if gap < CAP else int(CAP)     # NaN: the cap
+                # the stall: the samples missing, or the silence before this one, the longer
+                held = max(gap, 0.0)
+                silent = math.floor(since / self.period_s - 0.5) if since > 0.0 else 0.0
+                held = max(held, silent)
+                if not gap <= CAP:              # beyond the count's cap, or NaN
+                    held = gap
+                r[COL["held_samples"]] = held
+                if held > self.longest_gap:
+                    self.longest_gap = int(min(held, CAP))
+                if held > 0.0 or held != held:
+                    if not held <= self.gap_limit:
+                        self._trip(Fault.STALE_INPUT, held, self.gap_limit)
+                    elif self.state == State.RUNNING and self.law and missed > 0:
+                        # bridged by holding the estimate: x_c and the integral stay
+                        flags |= BRIDGED
+                        r[COL["bridged"]] = missed
+                        self.bridged_total += missed
             self.strains[:] = sample.strains
             r[COL["load_N"]] = sample.axial_load
         if self.state == State.RUNNING:
@@ -448,16 +537,6 @@ class ReferenceController:
         non-finite q)."""
         with np.errstate(invalid="ignore", over="ignore"):
             self.q[:] = self.c0_phi_inv @ self.strains
-
-    def _bridge(self, missed: int) -> None:
-        """``missed`` prediction steps at the schedule's point of the last sample: the stacks
-        held their voltages (u_applied as it is), the integral holds, the compensator runs on
-        its own prediction of the strains (or the last measured ones)."""
-        for _ in range(missed):
-            m = self.matrices()
-            if m.predict is not None:
-                self.strains[:] = m.predict @ self.x
-            self.x = m.a @ self.x + m.b @ self.strains + m.e @ self.applied
 
     def _control(self) -> int:
         """One controlled sample: returns its flags."""
@@ -520,6 +599,11 @@ class ReferenceController:
             # the compensator's next state sees the forces the stacks give
             m = self.matrices()
             self.x = m.a @ self.x + m.b @ self.strains + m.e @ self.applied
+            # the fade-in's ramp is not a spread: the statistics start over until it ends
+            if self.steps <= self.start_samples:
+                self._stats_start()
+            else:
+                self._stats_update()
             # saturation_limit saturated samples in a row fault
             if self.scale_a < 1.0 or self.scale_b < 1.0:
                 self.saturated += 1

@@ -168,7 +168,8 @@ def test_a_daq_killed_with_sigkill_leaves_the_controller_ramping_to_bias(tmp_pat
     first_fault = int(np.argmax(faulted))
     assert first_fault >= 2000, f"the fault came in cycle {first_fault + 1}, before the kill (cycle 2000)"
     gap = events[first_fault][4]
-    assert gap in shipped_limits(1500.0)[:, 0], f"gap limit {gap}: not the table's at 1500 N"
+    cap = shipped_limits(1500.0)[:, 0].max()
+    assert 1 <= gap <= cap, f"live gap limit {gap} samples at the fault: expected 1 to the cap {cap:g}"
     silent = (t[first_fault] - t[last]) * RATE
     assert gap + 1 <= silent <= gap + 1.1 + 1e-9, (
         f"stale-input fault after {silent:.2f} periods without a sample; due after {gap + 1}")

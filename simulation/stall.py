@@ -1,0 +1,248 @@
+"""Stalls in the time domain: the controller's engine (rt/controller.py) in lockstep with the
+simulated rig (models/plant.py), a stall of N samples injected at a load (the stacks hold the last
+answer for N samples the controller never sees, then the newest sample arrives with N missed, as
+the CAN backend delivers it), and what the beam and the stacks went through. Deterministic: the
+plant's noise from its seed, no clock but the samples.
+
+``stall_run`` runs one stall and says whether it was survived: no fault, no stack at the end of
+its range, the strain within the supervisor's limit, through the stall and ``after_s`` of
+recovery. ``survival_edge`` lifts the engine's limit (its growth curves all 1, its caps off, so
+that it bridges any stall) and searches the shortest stall that is lost: the time-domain edge the
+table's live limit must stay below (gains/ridethrough.py; tests/simulation/test_stall.py, the
+figure in docs/pages/controller.md).
+
+The rigs: the nominal (the table's model) and any ``models.rig.Rig`` (the robust check's worst,
+``gains.robust.rig_of``): its own beam, supports, damping, gauges, I/O delay and DAQ rate, and
+its stacks' force per volt ``force_gain`` times what the controller believes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from beamctl.gains.table import GainTable
+from beamctl.hal.base import Sample
+from beamctl.models.fe import build_model
+from beamctl.models.plant import Plant, plant_config
+from beamctl.models.rig import Rig
+from beamctl.rt import engine as e
+from beamctl.rt.allocation import geometry
+from beamctl.rt.config import ControllerConfig, controller_config
+from beamctl.rt.controller import Controller
+
+# the simulated rig of the acceptance runs: a 20 um bow, 0.2 ue gauge noise, 2 N load noise
+RIG_SETTINGS = {"bow": {"amplitude": 2e-5, "angle_deg": 30.0}, "noise": {"strain": 2e-7, "load": 2.0}}
+RAMP_N_PER_S = 1000.0     # the load is brought from the table's start to the stall's load at this
+START_N = 2000.0          # ... from here (the controller started below the critical load)
+SETTLE_S = 1.0            # held at the load this long before the stall (the spreads settle: 0.1 s,
+                          # from what the ramp adds to the stacks' moving variance)
+AFTER_S = 0.2             # followed this long after the stall (the recovery)
+
+
+@dataclass(frozen=True)
+class StallOutcome:
+    """What one stall did: ``survived`` (no fault, no stack at its range's end, the strain
+    within the limit), the live limit when it began (samples), the largest strain's fraction of
+    the supervisor's limit and the largest stack excursion from the operating point (V) during
+    the stall and after it, the fault (name, or "")."""
+
+    load_n: float
+    gap_samples: int
+    survived: bool
+    limit_samples: float
+    strain_fraction: float
+    voltage_excursion_v: float
+    saturated: bool
+    fault: str
+
+
+class StallRig:
+    """A controller of ``table`` (``config``: the shipped settings by default) on a simulated
+    rig (``rig``: None for the nominal), ready to bring to a load and stall."""
+
+    def __init__(self, table: GainTable, rig: Rig | None = None, config: ControllerConfig | None = None,
+                 seed: int = 1) -> None:
+        self.table = table
+        self.nominal = rig is None
+        self.config = config or controller_config()
+        params = table.model_parameters if rig is None else rig.params
+        rate = table.design.sample_rate_hz if rig is None else rig.sample_rate_hz
+        chain = table.design.io if rig is None else rig.chain
+        self.force_gain = 1.0 if rig is None else float(rig.force_gain)
+        self.model = build_model(params)
+        self.rate = float(rate)
+        self.io = chain.to_dict()        # the rig's own I/O chain (anti-alias filter, delay)
+        self.seed = seed
+        self.geometry = geometry(self.config.actuators)
+        self.force_matrix = self.geometry.force_matrix() * self.force_gain
+        self.bias = self.geometry.bias_voltage_v
+        a = self.config.actuators
+        self.v_range = (a.min_voltage_v, a.max_voltage_v)
+        beam = table.model_parameters.beam
+        self.strain_limit = (self.config.safety.strain_limit_fraction * beam.proportional_limit
+                             / beam.youngs_modulus)
+
+    def _plant(self, load_n: float) -> Plant:
+        start = min(START_N, load_n)
+        settings = {**RIG_SETTINGS, "sample_rate_hz": self.rate,
+                    "load": {"start": start, "end": load_n, "rate": RAMP_N_PER_S, "hold": 0.02},
+                    "io": self.io}
+        settings["noise"] = {**RIG_SETTINGS["noise"], "seed": self.seed}
+        return Plant(self.model, plant_config(settings))
+
+    def run(self, load_n: float, gap: int, lift: bool = False, settle_s: float = SETTLE_S,
+            after_s: float = AFTER_S) -> StallOutcome:
+        """A stall of ``gap`` samples at ``load_n`` (``lift``: the engine's limit lifted, so that
+        it bridges the stall whatever its length)."""
+        plant = self._plant(load_n)
+        c = Controller(self.table, self.config)
+        if lift:
+            o, n, gl = int(c.iv[e.O_GROWTH]), int(c.iv[e.V_N_GRID]), int(c.iv[e.V_N_GLOADS])
+            c._mats[o:o + gl * 2 * n] = 1.0
+            c.fv[e.P_GAP_CAP] = c.fv[e.P_LATE_CAP] = np.inf
+        sample = Sample()
+        seq = 0
+        forces = np.zeros(4)
+
+        def measure() -> None:
+            nonlocal seq
+            strains, load = plant.measure()
+            sample.strains[:] = strains
+            sample.axial_load = load
+            sample.sequence = seq
+            sample.timestamp = plant.time
+            seq += 1
+
+        def apply(voltages: np.ndarray) -> None:
+            np.dot(self.force_matrix, voltages - self.bias, out=forces)
+            plant.step(forces)
+
+        measure()
+        c.arm(sample)
+        c.start()
+        reach = plant.config.load.duration() + settle_s
+        while plant.time < reach and c.state.name == "RUNNING":
+            measure()
+            sample.missed = 0
+            apply(c.step(sample))
+        limit = c.gap_limit
+        held = c.voltages.copy()
+        strain_top, swing, saturated = 0.0, 0.0, False
+        for _ in range(gap):                        # the stall: nothing reaches the controller
+            measure()
+            strain_top = max(strain_top, float(np.abs(sample.strains).max()))
+            apply(held)
+        measure()
+        sample.missed = gap
+        for k in range(int(round(after_s * self.rate)) + 1):
+            if k:
+                measure()
+                sample.missed = 0
+            v = c.step(sample)
+            if c.state.name != "RUNNING":
+                break
+            saturated |= bool(np.any(v <= self.v_range[0]) or np.any(v >= self.v_range[1]))
+            swing = max(swing, float(np.abs(v - held).max()))
+            strain_top = max(strain_top, float(np.abs(sample.strains).max()))
+            apply(v)
+        fault = c.supervisor.fault.name if c.supervisor.fault.name != "NONE" else ""
+        fraction = strain_top / self.strain_limit
+        survived = not fault and not saturated and fraction < 1.0
+        return StallOutcome(load_n=float(load_n), gap_samples=int(gap), survived=survived,
+                            limit_samples=float(limit), strain_fraction=fraction,
+                            voltage_excursion_v=swing, saturated=saturated, fault=fault)
+
+    def edge(self, load_n: float, cap: int, start: int = 1) -> int:
+        """The shortest stall (samples) lost at ``load_n`` with the limit lifted, by a galloping
+        search from ``start`` and a bisection (survival taken to fall with the stall's length);
+        ``cap + 1`` when a stall of ``cap`` is survived."""
+        low, high = 0, None                 # low: survived (0: none tried), high: lost
+        n = max(int(start), 1)
+        while high is None:
+            if self.run(load_n, n, lift=True).survived:
+                low = n
+                if n >= cap:
+                    return cap + 1
+                n = min(2 * n, cap)
+            else:
+                high = n
+        while high - low > 1:
+            mid = (low + high) // 2
+            if self.run(load_n, mid, lift=True).survived:
+                low = mid
+            else:
+                high = mid
+        return high
+
+
+def worst_rig(table: GainTable) -> Rig | None:
+    """The robust check's worst rig that ``table`` records (gains/robust.py), or None."""
+    from beamctl.gains import robust
+
+    record = table.robust or {}
+    if not (record.get("worst_rig") and isinstance(record.get("box"), dict)):
+        return None
+    box = robust.box_from_dict(record["box"], table.model_parameters, "the table's robust check")
+    return robust.rig_of(table, box, record["worst_rig"])
+
+
+@dataclass(frozen=True)
+class EdgeRow:
+    """At one load: the live limit when the stall began and the time-domain survival edge (the
+    shortest stall lost with the limit lifted; ``cap + 1``: none up to the cap), in samples of
+    the rig's rate."""
+
+    load_n: float
+    limit_samples: float
+    edge_samples: int
+    cap_samples: int
+    rate_hz: float
+
+
+def edges(stall_rig: StallRig, loads, progress=None) -> list[EdgeRow]:
+    """The limit and the survival edge at each of ``loads`` (``edge``: from the limit up)."""
+    table = stall_rig.table
+    cap = table.ride_through.gap_cap_samples if table.ride_through else 600
+    # the cap is the table's samples (its period): a rig with a slower DAQ clock reaches it in
+    # fewer of its own (and is then faulted as stopped, not lost)
+    cap = int(cap * stall_rig.rate / table.design.sample_rate_hz) - 1
+    rows = []
+    for i, load in enumerate(loads):
+        limit = stall_rig.run(float(load), 1).limit_samples
+        edge = stall_rig.edge(float(load), cap, start=max(int(limit), 1))
+        rows.append(EdgeRow(float(load), float(limit), int(edge), cap, stall_rig.rate))
+        if progress:
+            progress(i + 1, len(loads), f"{load:7.1f} N: limit {limit:g}, edge {edge} samples")
+    return rows
+
+
+def edge_figure(curves: dict[str, list[EdgeRow]], path) -> None:
+    """Limit and survival edge (ms) versus load, one colour per rig; an edge beyond the cap is
+    drawn at the cap with an open marker."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.5, 4.2))
+    for (name, rows), colour in zip(curves.items(), ("C0", "C3", "C2", "C1"), strict=False):
+        loads = [r.load_n for r in rows]
+        limit = [1e3 * r.limit_samples / r.rate_hz for r in rows]
+        edge = [1e3 * min(r.edge_samples, r.cap_samples) / r.rate_hz for r in rows]
+        beyond = [r.edge_samples > r.cap_samples for r in rows]
+        ax.plot(loads, limit, "-o", color=colour, label=f"live limit, {name}")
+        ax.plot(loads, edge, "--", color=colour, label=f"survival edge, {name}")
+        for x, y, b in zip(loads, edge, beyond, strict=True):
+            ax.plot([x], [y], "^" if b else "s", color=colour, markerfacecolor="none" if b else colour)
+    ax.set_yscale("log")
+    ax.set_xlabel("axial load (N)")
+    ax.set_ylabel("stall (ms)")
+    ax.set_title("stall ridden through (live limit) and the shortest lost (edge); open: none lost up to the cap")
+    ax.title.set_fontsize(9)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,64 @@
+"""Stalls in the time domain, at the shipped settings (simulation/stall.py): the shipped
+controller in lockstep with the simulated rig (a 20 um bow, 0.2 ue gauge noise), nominal and the
+robust check's worst rig, a stall injected after the load was reached and held. Deterministic: the
+rig's noise from a fixed seed, no clock but the samples.
+
+At each load from 2000 N to near the table's top: a stall as long as the live limit at that moment
+is survived (no fault, no stack at the end of its range, the strain inside the supervisor's limit,
+through the stall and 0.2 s of recovery); where the limit is below its cap (the DAQ has stopped,
+not paused) a stall of twice the limit is lost with the limit lifted: the limit is below the
+survival edge and within a factor of two of it. The full edge per load (a search) is the figure in
+docs/pages/controller.md (``beamctl gains stalls``)."""
+
+import pytest
+
+from beamctl.gains.defaults import default_table_path
+from beamctl.gains.table import load_table
+from beamctl.simulation.stall import StallRig, worst_rig
+
+TABLE = load_table(default_table_path())
+TOP_N = float(TABLE.loads_n[-1]) - 100.0    # the load's noise (2 N) and filter stay in the table
+LOADS = (2000.0, 3000.0, 3300.0, 3600.0, TOP_N)
+RIGS = ("nominal", "worst")
+ONSET_MARGIN = 0.99     # the worst rig is held up to its onset (the robust check's); at 0.99 of it its
+                        # loop is barely damped and the load's noise alone crosses it
+
+
+@pytest.fixture(scope="module", params=RIGS)
+def rig(request):
+    if request.param == "nominal":
+        return StallRig(TABLE)
+    worst = worst_rig(TABLE)
+    assert worst is not None, "the shipped table records its robust check's worst rig"
+    return StallRig(TABLE, rig=worst)
+
+
+def _say(o) -> str:
+    return (f"{o.gap_samples} samples at {o.load_n:g} N: fault {o.fault or 'none'}, strain at "
+            f"{100 * o.strain_fraction:.1f} % of the limit, stacks moved up to {o.voltage_excursion_v:.1f} V"
+            f"{', saturated' if o.saturated else ''}")
+
+
+@pytest.mark.parametrize("load", LOADS)
+def test_a_stall_up_to_the_live_limit_is_survived_and_twice_it_is_lost(rig, load):
+    if not rig.nominal and load > ONSET_MARGIN * TABLE.robust["onset_N"]:
+        pytest.skip(f"{load:g} N: the worst rig is not held there (unstable from {TABLE.robust['onset_N']:.0f} N)")
+    limit = rig.run(load, 1).limit_samples
+    cap = TABLE.ride_through.gap_cap_samples
+    assert limit >= 1, f"at {load:g} N the live limit is {limit:g} samples: not even one is ridden through"
+    at = rig.run(load, int(limit))
+    assert at.survived, f"a stall at the live limit was lost: {_say(at)}"
+    if limit < cap:
+        twice = rig.run(load, int(2 * limit), lift=True)
+        assert not twice.survived, (
+            f"a stall of twice the live limit ({limit:g} samples) was survived with the limit lifted: "
+            f"the limit is more than a factor of two below the survival edge ({_say(twice)})")
+
+
+def test_at_3300_n_the_live_limit_is_10_ms_nominal_and_5_ms_on_the_worst_rig(rig):
+    """The acceptance's floor at 3300 N (above the nominal Fx,cr of 3194 N), at the rig's own
+    sample rate."""
+    floor_ms = 10.0 if rig.nominal else 5.0
+    limit = rig.run(3300.0, 1).limit_samples
+    assert 1e3 * limit / rig.rate >= floor_ms, (
+        f"the live limit at 3300 N is {1e3 * limit / rig.rate:.1f} ms ({limit:g} samples), below {floor_ms:g} ms")
