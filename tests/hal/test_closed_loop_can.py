@@ -194,16 +194,24 @@ def test_samples_queued_before_the_first_read_are_discarded_and_counted(tmp_path
     _, records = read_telemetry(tmp_path / "backlog.btl")
     answered = records[(records[:, COL["flags"]].astype(int) & FLAG_NO_NEW_SAMPLE) == 0]
     sequences = answered[:, COL["sequence"]]
-    assert sequences[0] == (result.backlog_discarded + 1) % 256, (
-        f"the first sample answered after arming is {sequences[0]:.0f}, not the one after the newest "
-        f"queued ({result.backlog_discarded})")
+    # the first sample answered after arming follows the newest queued; any that came while the
+    # controller armed (wallclock pace) are skipped for the newest and counted as held
+    first_skip = (sequences[0] - result.backlog_discarded - 1) % 256
+    assert first_skip < 64 and answered[0, COL["held_samples"]] >= first_skip, (
+        f"the first sample answered after arming is {sequences[0]:.0f}, the newest queued was "
+        f"{result.backlog_discarded}: {first_skip} skipped, "
+        f"{answered[0, COL['held_samples']]:.0f} counted as held")
     # after arming, a stall of this process (wallclock pace, a busy machine) lets samples queue:
     # the newest is answered and the ones skipped count as the time the stacks held their voltage
+    # (the stall is measured while the law runs: before it starts the stacks are at bias)
     jump = np.diff(sequences) % 256 - 1
     held = answered[1:, COL["held_samples"]]
-    assert np.all(held >= jump), (
-        f"samples skipped after arming without being counted as held: jumps {jump[held < jump][:5]}, "
-        f"held {held[held < jump][:5]}")
+    running = answered[1:, COL["state"]] == State.RUNNING.value
+    short = running & (held < jump)
+    assert not short.any(), (
+        f"samples skipped while running without being counted as held: jumps {jump[short][:5]}, "
+        f"held {held[short][:5]}")
+    assert running.sum() > 100, f"the law ran for only {running.sum()} of 200 samples"
 
 
 def test_a_daq_waiting_for_its_first_answer_gets_it_though_the_backlog_is_discarded():
