@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from beamctl.gains import robust
 from beamctl.gains.table import GainTable
 from beamctl.hal.base import Sample
 from beamctl.models.fe import build_model
@@ -73,6 +74,7 @@ class StallRig:
         self.force_gain = 1.0 if rig is None else float(rig.force_gain)
         self.model = build_model(params)
         self.rate = float(rate)
+        self.table_rate = float(table.design.sample_rate_hz)
         self.io = chain.to_dict()        # the rig's own I/O chain (anti-alias filter, delay)
         self.seed = seed
         self.geometry = geometry(self.config.actuators)
@@ -83,6 +85,17 @@ class StallRig:
         beam = table.model_parameters.beam
         self.strain_limit = (self.config.safety.strain_limit_fraction * beam.proportional_limit
                              / beam.youngs_modulus)
+
+    def stall_samples(self, table_samples: float) -> int:
+        """The longest stall (in the rig's samples) that the engine, counting in the table's
+        periods, holds as at most ``table_samples`` (``held``: the silence since the sample before,
+        rounded, rt/engine.py): the same on the nominal rig, fewer on a rig whose DAQ clock is
+        slower than the table's rate."""
+        ratio = self.table_rate / self.rate
+        n = int(np.floor(table_samples))
+        while n > 0 and np.floor((n + 1) * ratio - 0.5) > table_samples:
+            n -= 1
+        return n
 
     def _plant(self, load_n: float) -> Plant:
         start = min(START_N, load_n)
@@ -179,8 +192,6 @@ class StallRig:
 
 def worst_rig(table: GainTable) -> Rig | None:
     """The robust check's worst rig that ``table`` records (gains/robust.py), or None."""
-    from beamctl.gains import robust
-
     record = table.robust or {}
     if not (record.get("worst_rig") and isinstance(record.get("box"), dict)):
         return None
@@ -190,37 +201,39 @@ def worst_rig(table: GainTable) -> Rig | None:
 
 @dataclass(frozen=True)
 class EdgeRow:
-    """At one load: the live limit when the stall began and the time-domain survival edge (the
-    shortest stall lost with the limit lifted; ``cap + 1``: none up to the cap), in samples of
-    the rig's rate."""
+    """At one load: the live limit when the stall began (the longest stall it rides through) and
+    the time-domain survival edge (the shortest stall lost with the limit lifted; ``cap + 1``:
+    none up to the cap, the cap being the stall faulted as a stopped DAQ), in samples of the
+    rig's rate; ``held``: the rig is held at this load without a stall (where it is not, beyond
+    its loop's stability onset, the edge is 0)."""
 
     load_n: float
     limit_samples: float
     edge_samples: int
     cap_samples: int
     rate_hz: float
+    held: bool = True
 
 
 def edges(stall_rig: StallRig, loads, progress=None) -> list[EdgeRow]:
     """The limit and the survival edge at each of ``loads`` (``edge``: from the limit up)."""
     table = stall_rig.table
-    cap = table.ride_through.gap_cap_samples if table.ride_through else 600
-    # the cap is the table's samples (its period): a rig with a slower DAQ clock reaches it in
-    # fewer of its own (and is then faulted as stopped, not lost)
-    cap = int(cap * stall_rig.rate / table.design.sample_rate_hz) - 1
+    cap = stall_rig.stall_samples(table.ride_through.gap_cap_samples if table.ride_through else 600) - 1
     rows = []
     for i, load in enumerate(loads):
-        limit = stall_rig.run(float(load), 1).limit_samples
-        edge = stall_rig.edge(float(load), cap, start=max(int(limit), 1))
-        rows.append(EdgeRow(float(load), float(limit), int(edge), cap, stall_rig.rate))
+        still = stall_rig.run(float(load), 0)       # no stall: is the rig held here at all?
+        limit = stall_rig.stall_samples(still.limit_samples)
+        edge = stall_rig.edge(float(load), cap, start=max(limit, 1)) if still.survived else 0
+        rows.append(EdgeRow(float(load), float(limit), int(edge), cap, stall_rig.rate, still.survived))
         if progress:
-            progress(i + 1, len(loads), f"{load:7.1f} N: limit {limit:g}, edge {edge} samples")
+            said = f"limit {limit:g}, edge {edge} samples" if still.survived else "not held without a stall"
+            progress(i + 1, len(loads), f"{load:7.1f} N: {said}")
     return rows
 
 
 def edge_figure(curves: dict[str, list[EdgeRow]], path) -> None:
     """Limit and survival edge (ms) versus load, one colour per rig; an edge beyond the cap is
-    drawn at the cap with an open marker."""
+    drawn at the cap with an open marker; loads where a rig is not held are left out."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -228,6 +241,7 @@ def edge_figure(curves: dict[str, list[EdgeRow]], path) -> None:
 
     fig, ax = plt.subplots(figsize=(7.5, 4.2))
     for (name, rows), colour in zip(curves.items(), ("C0", "C3", "C2", "C1"), strict=False):
+        rows = [r for r in rows if r.held]
         loads = [r.load_n for r in rows]
         limit = [1e3 * r.limit_samples / r.rate_hz for r in rows]
         edge = [1e3 * min(r.edge_samples, r.cap_samples) / r.rate_hz for r in rows]

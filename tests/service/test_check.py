@@ -32,7 +32,12 @@ def test_a_runnable_configuration_names_its_table_hash_and_design_and_exits_0(tm
     sha = load_table(default_table_path()).sha256       # the content hash the service reports
     assert str(default_table_path().resolve()) in out and sha in out, out
     assert "lqg at 6000 Hz" in out and "would start" in out
-    assert "robust check" in out and "not recorded" in out, "the shipped table records no robust check"
+    robust = load_table(default_table_path()).robust      # the shipped table records its robust check
+    line = next((x for x in out.splitlines() if x.startswith("robust check")), "")
+    assert "held" in line and f"{robust['worst_ratio']:.4f}" in line, (
+        f"the robust check's line does not give the table's record (worst ratio "
+        f"{robust['worst_ratio']:.4f}): {line!r}")
+    assert "ride-through" in out and "3300 N" in out, "the ride-through per load is not printed"
 
 
 def test_every_reason_the_service_would_refuse_is_given_and_exits_1(tmp_path, capsys):
