@@ -69,8 +69,9 @@ support forces (a stack's voltage is its support's y and z forces combined: the 
 independent, so its growth is at most the larger of theirs).
 
 Loads. The analysed loads are those of the table's closed-loop check (``gains.build.check_plan``:
-grid points, midpoints, paper mode's band ends); the engine takes, per grid interval, the largest
-growth of every analysed load in it, ends included.
+grid points, midpoints, paper mode's band ends) and, from 0.95 of the nominal Fx,cr up, every
+25 N (``gains.build.ride_through_plan``: the growth rises steeply with the load there); the engine
+takes the larger growth of the two analysed loads around its filtered load.
 
 Delay. The largest extra output delay, on a grid of ``DELAY_STEP_SAMPLES`` up to
 ``DELAY_CAP_SAMPLES``, on top of the design's own (``design.io.delay_samples``), with which the
@@ -105,8 +106,8 @@ from beamctl.rt.engine import gap_allowed
 
 CONFIDENCE_SIGMA = 3.5      # the k of the k-sigma bound (one-sided 2.3e-4 at the recovery's peak, on
                             # spreads measured with the gauges' noise in them, which does not grow in a
-                            # gap: in the time domain the survival edge is 1.3 to 2 x the limit,
-                            # simulation/stall.py)
+                            # gap: in the time domain the survival edge is 1.4 to 2.8 x the limit
+                            # past Fx,cr on the nominal and the worst rig, `beamctl gains stalls`)
 GROWTH_CAP = 2.0e3          # a growth beyond this is stored as this: no headroom allows it (75 V over
                             # 3.5 x 0.05 V RMS is 429; 3200 ue over 3.5 x 0.5 ue 1830)
 SETTLED = 1.1               # the recovery is followed until nothing later exceeds max(peak, 1.1 x stationary)

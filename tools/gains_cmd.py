@@ -482,6 +482,11 @@ def run_stalls(args: argparse.Namespace) -> int:
         raise ConfigError("file", args.file or default_table_path(),
                           "a table with a ride-through analysis (rebuild it: `beamctl gains build`)")
     top = float(table.loads_n[-1]) - 100.0
+    beyond = [x for x in args.loads or () if x > top]
+    if beyond:
+        raise ConfigError("--loads", ",".join(f"{x:g}" for x in beyond),
+                          f"loads up to {top:g} N (100 N below the table's top: the load's noise and filter "
+                          "stay in its range)")
     loads = sorted(set(args.loads)) if args.loads else sorted(
         {*np.arange(2000.0, top + 1e-9, 200.0).tolist(), 3300.0, top})
     rigs = {}

@@ -218,3 +218,22 @@ def test_build_answers_in_json_with_its_lines_on_stderr(tmp_path, capsys):
     assert built["written"] and built["file"] == str(out), built
     assert built["all_stable"] and built["grid_points"] == 9, built
     assert "wrote" in captured.err and "robust check skipped" in captured.err
+
+
+def test_stalls_compares_the_live_limit_with_the_survival_edge_as_json(capsys):
+    """At 3300 N (past the nominal Fx,cr of 3194 N) the shipped table's limit is finite and a
+    stall of it is survived on the simulated rig; the edge the search finds lies above it."""
+    assert main(["gains", "stalls", "--loads", "3300", "--rig", "nominal", "--json"]) == 0
+    captured = capsys.readouterr()
+    row, = json.loads(captured.out)["nominal"]
+    assert row["held_without_stall"] and 1 <= row["limit_samples"] < row["edge_samples"], row
+    assert not row["edge_beyond_cap"], f"no stall up to the cap was lost at 3300 N: {row}"
+    assert "stalls, nominal" in captured.err and "100 %" in captured.err, "progress on stderr"
+
+
+@pytest.mark.parametrize("flags, named", [(["--loads", "3950"], "--loads"), (["--loads", "3300,x"], "--loads"),
+                                          (["--rig", "softest"], "--rig")])
+def test_stalls_refuses_loads_beyond_the_table_and_unknown_rigs(flags, named, capsys):
+    assert main(["gains", "stalls", *flags]) == 2
+    err = capsys.readouterr().err
+    assert named in err and "Traceback" not in err, err
