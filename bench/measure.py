@@ -341,6 +341,7 @@ def can_latency(samples: int = 10_000, load_n: float = 2000.0) -> dict:
     with tempfile.TemporaryDirectory() as tmp, stop_on_signals() as stop:
         loop = ControlLoop(controller, backend, max_cycles=samples + 2 * warm_up, on_cycle=on_cycle,
                            stop=stop, stop_on_fault=False)
+        stats_path = Path(tmp) / "daq.json"
         cfg = Path(tmp) / "plant.yaml"
         cfg.write_text(json.dumps({"plant": {"load": {"start": load_n, "end": load_n},
                                              "bow": {"amplitude": 5e-5, "angle_deg": 234.0}}}))
@@ -351,7 +352,7 @@ def can_latency(samples: int = 10_000, load_n: float = 2000.0) -> dict:
         emulator = subprocess.Popen(
             [sys.executable, "-c", "import sys; from beamctl.tools.cli import main; sys.exit(main())",
              "plant", "--can", f"{interface}:{channel}", "--config", str(cfg),
-             "--duration", f"{duration:.3f}"],
+             "--duration", f"{duration:.3f}", "--stats", str(stats_path)],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, preexec_fn=_emulator_priority)
         try:
             first = emulator.stdout.readline()          # the banner: the emulator is on the bus
@@ -367,6 +368,7 @@ def can_latency(samples: int = 10_000, load_n: float = 2000.0) -> dict:
                 emulator.kill()
                 emulator.communicate()
             backend.close()
+        daq = json.loads(stats_path.read_text()) if stats_path.exists() else None
     if result.signal_received:
         raise Interrupted(result.signal_received, "the CAN latency measurement")
     ages = ages[:answered]
@@ -385,8 +387,31 @@ def can_latency(samples: int = 10_000, load_n: float = 2000.0) -> dict:
             "bus": backend.budget.description, "bus_load_percent": 100 * backend.budget.load,
             "max_rate_classic_1M_Hz": budget.max_sample_rate_hz,
             "max_rate_fd_1M_4M_Hz": fd.max_sample_rate_hz,
+            "daq_stalls": daq_stalls(daq, table),
             "hal": {k: v for k, v in result.hal.items() if isinstance(v, int | float)},
             "loop_timing": {k: result.timing[k] for k in ("read", "compute", "write", "answer_age")}}
+
+
+def daq_stalls(daq: dict | None, table) -> dict | None:
+    """The stalls the DAQ saw (``beamctl plant --stats``: the plant steps in a row the stacks
+    held one voltage, the longest per minute) against the table's ride-through at the reference
+    operating point (gains/ridethrough.py ``REFERENCE``, the simulated rig at 3300 N): the highest
+    analysed load up to which every load's limit is at least the longest stall measured."""
+    if daq is None or table.ride_through is None:
+        return None
+    rt = table.ride_through
+    longest = int(daq["held_longest_samples"])
+    loads = sorted(set(float(x) for x in rt.loads_n))
+    limits = [n for n, _ in rt.reference_limits(loads)]
+    up_to = None
+    for load, limit in zip(loads, limits, strict=True):
+        if limit < longest:
+            break
+        up_to = load
+    return {"longest_samples": longest, "longest_ms": float(daq["held_longest_ms"]),
+            "per_minute_ms": daq["held_longest_per_minute_ms"], "missed_answers": daq["missed_answers"],
+            "not_sent_late": daq["not_sent_late"], "rides_through_up_to_N": up_to,
+            "table_top_N": float(table.loads_n[-1])}
 
 
 def sim_realtime_factor() -> dict:

@@ -23,6 +23,12 @@ during that step: the one consistent place to observe the plant while it runs.
 The controller's latency is measured per sample as the DAQ sees it: from the send of a
 ``DAQ_Strains`` frame to the bus time stamp of the ``CTRL_Voltages`` frame that answers it (the
 same sequence), in ``latencies_s`` (NaN where a sample was not answered).
+
+What the beam saw of the controller's stalls, in the DAQ's own clock: the plant steps in a row
+during which no new answer was applied (the stacks held one voltage; 0 while every sample is
+answered before the next), the longest of the run (``held_longest``) and of each minute of
+plant time (``held_longest_per_minute``), counted while answers come (a controller that has
+stopped answering is not a stall: the DAQ falls back to bias on its own).
 """
 
 from __future__ import annotations
@@ -95,6 +101,11 @@ class CanPlantEmulator:
         self._last_valid = None            # time.monotonic() of the latest valid voltage frame
         self._fallback_start = 0.0
         self.latencies_s = np.full(latency_samples, np.nan)
+        self._answered = False             # a new answer applied since the last plant step
+        self._held_run = 0                 # plant steps in a row without a new answer
+        self.held_longest = 0
+        self.held_longest_per_minute: list[int] = []
+        self._samples_per_minute = max(1, int(round(60.0 / plant.config.period_s)))
         self.stop_event = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -155,6 +166,7 @@ class CanPlantEmulator:
         for k, i in enumerate(self._voltage_order):
             self._voltages[k] = self._decoded[i]
         self.voltage_frames += 1
+        self._answered = True
         self._last_valid = time.monotonic()
         self.falling_back = False
         sent = self._sent_at[seq]
@@ -183,9 +195,28 @@ class CanPlantEmulator:
     def _step_plant(self) -> None:
         self._fall_back()
         self.plant.step(self._force_matrix @ (self._voltages - self._bias))
+        self._count_hold()
         self.samples += 1
         if self.on_step is not None:
             self.on_step(self.plant, self._voltages)
+
+    def _count_hold(self) -> None:
+        """After a plant step: the run of steps without a new answer, and the longest per minute
+        (a run is recorded when an answer ends it: a silence that never ends is the controller
+        gone, which the fallback handles)."""
+        if not self._answered:
+            self._held_run += 1
+            return
+        self._answered = False
+        run, self._held_run = self._held_run, 0
+        if run == 0 or self.voltage_frames <= 1:
+            return
+        minute = self.samples // self._samples_per_minute
+        per = self.held_longest_per_minute
+        while len(per) <= minute:
+            per.append(0)
+        per[minute] = max(per[minute], run)
+        self.held_longest = max(self.held_longest, run)
 
     def _await_answer(self) -> bool:
         """Lockstep: take frames until the voltage frame answering the sample just sent (True),

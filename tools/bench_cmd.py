@@ -140,6 +140,15 @@ def run(args: argparse.Namespace) -> int:
               f"({lat['samples'] / lat['sample_rate_hz']:.0f} s); {lat['over_half_period']} later than "
               f"half a period ({lat['half_period_us']:.0f} us), {lat['late']} later than the answer budget; "
               f"{lat['ended']}")
+        st = lat.get("daq_stalls")
+        if st:
+            per = ", ".join(f"{x:.2f}" for x in st["per_minute_ms"]) or "none"
+            up = (f"up to {st['rides_through_up_to_N']:g} N" if st["rides_through_up_to_N"] is not None
+                  else "at no load")
+            print(f"stalls seen by the DAQ (the stacks held one voltage): longest {st['longest_samples']} samples "
+                  f"({st['longest_ms']:.2f} ms), per minute of plant time {per} ms; the shipped table rides "
+                  f"through that {up} of its {st['table_top_N']:g} N at the reference operating point "
+                  f"(`beamctl gains show`)")
         print(f"bus load at {lat['sample_rate_hz']:g} Hz: {lat['bus_load_percent']:.1f} % of {lat['bus']}; "
               f"highest rate on classic CAN 1 Mbit/s {lat['max_rate_classic_1M_Hz']:.0f} Hz "
               f"(CAN FD 1/4 Mbit/s: {lat['max_rate_fd_1M_4M_Hz']:.0f} Hz)")

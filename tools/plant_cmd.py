@@ -10,6 +10,7 @@ import sys
 import threading
 from pathlib import Path
 
+from beamctl.common.outputs import check_file, write_text
 from beamctl.config.schema import ConfigError
 from beamctl.gains.defaults import default_table_path
 from beamctl.gains.table import load_table
@@ -52,6 +53,9 @@ def add_parser(sub) -> None:
                         "(default: the DBC's SilenceTimeoutMs)")
     p.add_argument("--fallback-ramp", type=seconds, metavar="S",
                    help="ramp to bias within S seconds when falling back (default: the DBC's FallbackRampMs)")
+    p.add_argument("--stats", metavar="FILE",
+                   help="write what the DAQ saw as JSON when it stops: samples, answers, and the stalls the "
+                        "stacks held one voltage through (the longest, per minute of plant time), in samples and ms")
     p.set_defaults(run=run_plant)
 
     b = sub.add_parser(
@@ -77,6 +81,7 @@ def run_plant(args: argparse.Namespace) -> int:
 
 
     interface, channel = parse_can(args.can)
+    stats = check_file(args.stats, "--stats") if args.stats else None
     cfg = load_service_config(args.config)
     table = load_gain_table(cfg)
     plant = build_plant(cfg, table)
@@ -117,7 +122,19 @@ def run_plant(args: argparse.Namespace) -> int:
           f"{emulator.voltage_frames} voltage frames, {emulator.missed_answers} missed answers, "
           f"{emulator.skipped} not sent (this process late), "
           f"{sum(emulator.rejected.values())} rejected, {emulator.fallbacks} fallbacks to bias, "
-          f"load {plant.axial_load:.0f} N, deflection {1e3 * d:.3f} mm at {angle:.0f} deg")
+          f"load {plant.axial_load:.0f} N, deflection {1e3 * d:.3f} mm at {angle:.0f} deg; the stacks held one "
+          f"voltage through at most {emulator.held_longest} samples "
+          f"({1e3 * emulator.held_longest * plant.config.period_s:.2f} ms)")
+    if stats is not None:
+        ms = 1e3 * plant.config.period_s
+        write_text(stats, json.dumps({
+            "samples": emulator.samples, "sample_rate_hz": plant.config.sample_rate_hz,
+            "voltage_frames": emulator.voltage_frames, "missed_answers": emulator.missed_answers,
+            "not_sent_late": emulator.skipped, "fallbacks": emulator.fallbacks,
+            "held_longest_samples": emulator.held_longest, "held_longest_ms": emulator.held_longest * ms,
+            "held_longest_per_minute_samples": emulator.held_longest_per_minute,
+            "held_longest_per_minute_ms": [n * ms for n in emulator.held_longest_per_minute],
+            "load_N": plant.axial_load, "deflection_mm": 1e3 * d}, indent=1) + "\n")
     return 0
 
 

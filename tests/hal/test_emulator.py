@@ -93,6 +93,31 @@ def test_only_valid_new_voltage_frames_move_the_stacks():
     assert (emulator.rejected["behind"], emulator.rejected["repeated"]) == (1, 2), emulator.rejected
 
 
+def test_the_daq_counts_the_samples_the_stacks_held_one_voltage():
+    """Samples 2 to 4 go unanswered: the plant steps three times on sample 1's voltages, and the
+    DAQ's record of stalls (the longest, per minute of plant time) says 3 once sample 5's answer
+    ends the stall; samples answered in turn add nothing."""
+    from beamctl.hal.emulator import CanPlantEmulator
+
+    emulator_bus = can.Bus(interface="virtual", channel="emulator-held")
+    controller_bus = can.Bus(interface="virtual", channel="emulator-held")
+    emulator = CanPlantEmulator(emulator_bus, make_plant(), GEOMETRY, pace="lockstep", answer_timeout_s=0.1)
+    try:
+        emulator.start(max_samples=8)
+        for k in range(8):
+            assert _next_strain_sequence(controller_bus) == k
+            if k not in (2, 3, 4):
+                _answer(controller_bus, k, 90.0)
+        emulator.join(timeout=5.0)
+    finally:
+        emulator.stop()
+        emulator_bus.shutdown()
+        controller_bus.shutdown()
+    assert emulator.missed_answers == 3
+    assert emulator.held_longest == 3 and emulator.held_longest_per_minute == [3], (
+        f"longest {emulator.held_longest}, per minute {emulator.held_longest_per_minute}")
+
+
 def _answer_then_fall_silent(channel: str, silence: float, ramp: float):
     """Answer the emulator's samples at 120 V as a controller does (200 of them), then fall
     silent: (times from the last answer, the first stack's voltages, fallbacks after the last

@@ -1,5 +1,6 @@
 """``beamctl plant`` (the emulator as the DAQ) and ``beamctl bus-budget``."""
 
+import json
 import re
 import threading
 
@@ -24,7 +25,7 @@ def test_plant_command_plays_the_daq_for_a_controller(capsys, tmp_path):
     result = {}
     thread = threading.Thread(target=lambda: result.setdefault(
         "rc", main(["plant", "--can", f"virtual:{channel}", "--config", str(config), "--duration", "1.0",
-                     "--pace", "wallclock"])))
+                     "--pace", "wallclock", "--stats", str(tmp_path / "daq.json")])))
     thread.start()
     try:
         samples = []
@@ -43,6 +44,14 @@ def test_plant_command_plays_the_daq_for_a_controller(capsys, tmp_path):
     assert len(samples) == 200 and np.all(steps >= 1), f"samples out of order: {samples}"
     assert np.sum(steps - 1) <= skipped, (
         f"{np.sum(steps - 1)} samples missing between those read, the emulator skipped {skipped}")
+    # the controller here answers 200 samples and stops: after its last answer the stacks hold
+    # (no stall: nothing ends it), before it at least the samples skipped between two it answered
+    stats = json.loads((tmp_path / "daq.json").read_text())
+    assert stats["samples"] == 2500 and stats["voltage_frames"] >= 190, stats
+    assert stats["held_longest_samples"] >= steps.max() - 1, (
+        f"the DAQ recorded a longest hold of {stats['held_longest_samples']} samples, the controller "
+        f"saw a jump of {steps.max()}")
+    assert stats["held_longest_ms"] == pytest.approx(stats["held_longest_samples"] / 2.5), stats
 
 
 @pytest.mark.parametrize("spec", ["vcan0", "socketcan:", ":vcan0"])
@@ -65,8 +74,6 @@ def test_bus_budget_says_what_fits(capsys):
 
 
 def test_bus_budget_reads_a_configuration_s_bus_and_table_and_answers_in_json(tmp_path, capsys):
-    import json
-
     config = tmp_path / "classic.yaml"
     config.write_text("hal:\n  backend: can\n  can: {fd: false, bitrate_bit_s: 1000000}\n")
     assert main(["bus-budget", "--config", str(config), "--json"]) == 1, "6000 Hz does not fit classic CAN"
