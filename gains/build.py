@@ -137,7 +137,8 @@ FINE_FROM_FRACTION = 0.95
 FINE_STEP_N = 25.0
 
 
-def ride_through_plan(table: GainTable, critical_n: float) -> list[tuple[float, float | None, CompensatorPoint]]:
+def ride_through_plan(
+        table: GainTable, critical_n: float) -> list[tuple[float, float | None, CompensatorPoint]]:
     """The loads the ride-through is analysed at: every load of the closed-loop check
     (``check_plan``) and, from FINE_FROM_FRACTION of ``critical_n`` to the table's top, every
     FINE_STEP_N (the schedule's settled matrices there), ascending."""
@@ -222,7 +223,8 @@ def build_table(model: FEModel, loads_n: Sequence[float] | None = None, mode: st
         raise ConfigError("--grid", loads.tolist(), "at least two grid points to interpolate between")
     schedule = schedule or replace(DEFAULT_SCHEDULE, mode=mode)
     reduced = reduce(model)
-    total = len(loads) + (_check_steps(loads, schedule, analyse_ride_through, critical_load(model)) if check else 0)
+    total = len(loads) + (_check_steps(loads, schedule, analyse_ride_through, critical_load(model))
+                          if check else 0)
     gains = np.zeros((len(loads), 4, 12))
     for i, load in enumerate(loads):
         gains[i] = lqr_gain(reduced, load, design.weights)

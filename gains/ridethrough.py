@@ -172,7 +172,8 @@ class RideThrough:
         object.__setattr__(self, "growth", np.asarray(self.growth, dtype=float))
         object.__setattr__(self, "max_extra_delay_samples_per_load",
                            tuple(float(v) for v in self.max_extra_delay_samples_per_load))
-        object.__setattr__(self, "answer_budgets_periods", tuple(float(v) for v in self.answer_budgets_periods))
+        object.__setattr__(self, "answer_budgets_periods",
+                           tuple(float(v) for v in self.answer_budgets_periods))
 
     @property
     def gap_cap_samples(self) -> int:
@@ -236,7 +237,8 @@ class RideThrough:
         parts = [f"{load:g} N {1e3 * n / sample_rate_hz:.1f}{'+' if n >= cap else ''}"
                  for load, (n, _) in zip(grid_loads, rows, strict=True)]
         return ("ride-through per load in ms at the reference operating point (mode 1 spread "
-                f"{REFERENCE['deflection_spread'] * 1e6:g} ue at the gauges, {REFERENCE['deflection_headroom'] * 1e6:g} "
+                f"{REFERENCE['deflection_spread'] * 1e6:g} ue at the gauges, "
+                f"{REFERENCE['deflection_headroom'] * 1e6:g} "
                 f"ue to the strain limit; stacks {REFERENCE['voltage_spread_v']:g} V RMS, "
                 f"{REFERENCE['voltage_headroom_v']:g} V to their range; the engine measures its own): "
                 + ", ".join(parts) + f" ('+': the grid's end, {1e3 * cap / sample_rate_hz:g} ms)")
@@ -499,7 +501,8 @@ class GrowthAnalysis:
         m, checkpoint = 0, GAP_BLOCK
         while True:
             with np.errstate(over="ignore", invalid="ignore"):
-                v = self.variance + np.sum((rows @ delta) * rows, axis=1).reshape(GAP_BLOCK, self.k).max(axis=0)
+                v = self.variance + np.sum((rows @ delta) * rows, axis=1).reshape(
+                    GAP_BLOCK, self.k).max(axis=0)
             if not np.all(np.isfinite(v)):
                 return np.full(self.k, np.inf)
             top = np.maximum(top, v)
@@ -728,8 +731,8 @@ def analyse(rigs: Sequence[RigPlane], table, plan: Plan, progress: BuildProgress
             plants[e] = _DelayedPlant(nominal, load, delay_step)
         plant, c = plants[e].sampled(round(nominal.chain.delay_samples + dgrid[k], 10))
         io = list(PLANE_CHANNELS[nominal.plane])
-        matrix = closed_loop_matrix(plant, c, point.plane(list(states), nominal.plane), comp.h[np.ix_(io, io)],
-                                    comp.period_s, nominal.force_gain)
+        matrix = closed_loop_matrix(plant, c, point.plane(list(states), nominal.plane),
+                                    comp.h[np.ix_(io, io)], comp.period_s, nominal.force_gain)
         return float(np.max(np.abs(np.linalg.eigvals(matrix)))) < 1.0
 
     def walk(e: int, top: int) -> int:

@@ -574,7 +574,8 @@ def _ride_through(data: dict, source: str, n_loads: int, design_delay: float,
     analysis (rt/controller.py)."""
     section = data["ride_through"]
     if not isinstance(section, dict):
-        raise GainTableError("ride_through", _short(section), "a mapping of the ride-through analysis", source)
+        raise GainTableError("ride_through", _short(section), "a mapping of the ride-through analysis",
+                             source)
     if "growth_limit" in section and "criterion" not in section:
         return None
     unknown = sorted(set(section) - set(RideThrough.FIELDS))
@@ -617,7 +618,8 @@ def _ride_through(data: dict, source: str, n_loads: int, design_delay: float,
         raise GainTableError("ride_through.rigs", _short(rigs), "a list naming the rigs analysed", source)
     growth = section["growth"]
     if not isinstance(growth, dict) or sorted(growth) != sorted(BRIDGES):
-        raise GainTableError("ride_through.growth", _short(growth), f"a mapping of the bridges {BRIDGES}", source)
+        raise GainTableError("ride_through.growth", _short(growth), f"a mapping of the bridges {BRIDGES}",
+                             source)
     curves = np.zeros((len(BRIDGES), len(OUTPUTS), len(loads), len(grid)))
     for b, bridge in enumerate(BRIDGES):
         part = growth[bridge]
@@ -632,7 +634,8 @@ def _ride_through(data: dict, source: str, n_loads: int, design_delay: float,
                 raise GainTableError(f"ride_through.{name}", found,
                                      f"one curve per analysed load ({len(loads)})", source)
             for i, row in enumerate(rows):
-                values = numbers(f"{name}[{i}]", row, len(grid), "one growth >= 1 per gap of the grid", low=1.0)
+                values = numbers(f"{name}[{i}]", row, len(grid), "one growth >= 1 per gap of the grid",
+                                 low=1.0)
                 if any(later < v for v, later in zip(values[:-1], values[1:], strict=True)):
                     raise GainTableError(f"ride_through.{name}[{i}]", _short(values),
                                          "a growth that does not fall with the gap's length", source)
@@ -652,6 +655,7 @@ def _ride_through(data: dict, source: str, n_loads: int, design_delay: float,
             expected = answer_budget(design_delay, delay)
             if not math.isclose(budget, expected, rel_tol=1e-12, abs_tol=1e-15):
                 raise GainTableError("ride_through.answer_budgets_periods", f"{budget!r} at index {i}",
-                                     f"the design's delay {design_delay:g} + max_extra_delay_samples_per_load "
+                                     f"the design's delay {design_delay:g} + "
+                                     "max_extra_delay_samples_per_load "
                                      f"/ {DELAY_MARGIN:g} = {expected:g}", source)
     return rt

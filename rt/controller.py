@@ -87,8 +87,8 @@ START_GROWTH = 10.0
 class RideThroughLimits:
     """What the engine takes of a table's ride-through (``ride_through_limits``): per grid point
     the answer budget in periods, the loads the growth was analysed at and per interval between
-    them the growth curves [interval, bridge (hold), output (deflection, voltage), gap], the gap grid, k of the k-sigma bound, and the
-    caps on the gap and late-answer limits (samples)."""
+    them the growth curves [interval, bridge (hold), output (deflection, voltage), gap], the gap
+    grid, k of the k-sigma bound, and the caps on the gap and late-answer limits (samples)."""
 
     budgets: np.ndarray
     growth_loads: np.ndarray
@@ -205,8 +205,8 @@ def ride_through_limits(table: GainTable, config: ControllerConfig) -> RideThrou
             late_cap = float(value)
         else:
             budgets = np.minimum(budgets, value)
-    return RideThroughLimits(budgets=budgets, growth_loads=growth_loads, growth=growth, grid=grid, confidence_sigma=float(k),
-                             gap_cap=gap_cap, late_cap=late_cap, source=source)
+    return RideThroughLimits(budgets=budgets, growth_loads=growth_loads, growth=growth, grid=grid,
+                             confidence_sigma=float(k), gap_cap=gap_cap, late_cap=late_cap, source=source)
 
 
 class Controller:

@@ -53,7 +53,8 @@ DESCRIPTIONS = {
     Fault.LOAD_NOT_FINITE: "the load-cell reading is not a finite number",
     Fault.LOAD_OUT_OF_SENSOR_RANGE: "the load-cell reading is outside the sensor range",
     Fault.LOAD_OUT_OF_TABLE_RANGE: "the axial load is outside the gain table's load range",
-    Fault.STALE_INPUT: "the stacks held a stale voltage longer than the beam rides through (samples missing, or a silence)",
+    Fault.STALE_INPUT: ("the stacks held a stale voltage longer than the beam rides through "
+                        "(samples missing, or a silence)"),
     Fault.OVERRUN_STREAK: "too many consecutive overruns of the control period",
     Fault.PERSISTENT_SATURATION: "the stack voltages stayed saturated for too long",
     Fault.HAL_ERROR: "the hardware abstraction reported an error",

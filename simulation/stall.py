@@ -253,7 +253,8 @@ def edge_figure(curves: dict[str, list[EdgeRow]], path) -> None:
     ax.set_yscale("log")
     ax.set_xlabel("axial load (N)")
     ax.set_ylabel("stall (ms)")
-    ax.set_title("stall ridden through (live limit) and the shortest lost (edge); open: none lost up to the cap")
+    ax.set_title("stall ridden through (live limit) and the shortest lost (edge); "
+                 "open: none lost up to the cap")
     ax.title.set_fontsize(9)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)

@@ -145,7 +145,8 @@ def run(args: argparse.Namespace) -> int:
             per = ", ".join(f"{x:.2f}" for x in st["per_minute_ms"]) or "none"
             up = (f"up to {st['rides_through_up_to_N']:g} N" if st["rides_through_up_to_N"] is not None
                   else "at no load")
-            print(f"stalls seen by the DAQ (the stacks held one voltage): longest {st['longest_samples']} samples "
+            print(f"stalls seen by the DAQ (the stacks held one voltage): "
+                  f"longest {st['longest_samples']} samples "
                   f"({st['longest_ms']:.2f} ms), per minute of plant time {per} ms; the shipped table rides "
                   f"through that {up} of its {st['table_top_N']:g} N at the reference operating point "
                   f"(`beamctl gains show`)")

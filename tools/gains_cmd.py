@@ -108,16 +108,18 @@ def add_parser(sub) -> None:
     c.set_defaults(run=run_check)
 
     t = gsub.add_parser("stalls", help="stalls in the time domain: at each load, the live ride-through "
-                        "limit and the shortest stall the simulated rig loses (nominal and the robust check's "
-                        "worst rig; about 10 s a load)")
+                        "limit and the shortest stall the simulated rig loses (nominal and the robust "
+                        "check's worst rig; about 10 s a load)")
     t.add_argument("file", nargs="?", help="gain table (default: the shipped gains/default.yaml)")
     t.add_argument("--loads", metavar="N,N,...", type=argtypes.number_list(low=0.0),
-                   help="loads in N (default: 2000 N to 100 N below the table's top, every 200 N, and 3300 N)")
+                   help="loads in N (default: 2000 N to 100 N below the table's top, every 200 N, "
+                        "and 3300 N)")
     t.add_argument("--rig", choices=("nominal", "worst", "both"), default="both",
                    help="the rig(s): nominal, the robust check's worst (recorded in the table), or both")
     t.add_argument("--plot", metavar="FILE", help="write the limit and the edge versus load as PNG")
     t.add_argument("--json", action="store_true", help="print one JSON object (progress stays on stderr)")
-    t.epilog = ("exit status 0: at every load where the rig is held, a stall of the live limit survived, and the limit below the edge; "
+    t.epilog = ("exit status 0: at every load where the rig is held, a stall of the live limit survived, "
+                "and the limit below the edge; "
                 "1: not so; 2: bad input")
     t.set_defaults(run=run_stalls)
 
@@ -406,7 +408,8 @@ def _ride_through_json(table: GainTable) -> dict | None:
     rows = rt.reference_limits(table.loads_n)
     return {"criterion": rt.criterion, "confidence_sigma": rt.confidence_sigma, "rigs": list(rt.rigs),
             "reference": dict(REFERENCE), "cap_ms": 1e3 * rt.gap_cap_samples / rate,
-            "per_load_ms": {f"{load:g}": 1e3 * n / rate for load, (n, _) in zip(table.loads_n, rows, strict=True)}}
+            "per_load_ms": {f"{load:g}": 1e3 * n / rate
+                            for load, (n, _) in zip(table.loads_n, rows, strict=True)}}
 
 
 def run_show(args: argparse.Namespace) -> int:
@@ -508,7 +511,8 @@ def run_stalls(args: argparse.Namespace) -> int:
         stall.edge_figure(curves, plot)
     if args.json:
         print(json.dumps({name: [{"load_N": r.load_n, "limit_ms": 1e3 * r.limit_samples / r.rate_hz,
-                                  "edge_ms": 1e3 * r.edge_samples / r.rate_hz, "edge_beyond_cap": r.edge_samples > r.cap_samples,
+                                  "edge_ms": 1e3 * r.edge_samples / r.rate_hz,
+                                  "edge_beyond_cap": r.edge_samples > r.cap_samples,
                                   "limit_samples": r.limit_samples, "edge_samples": r.edge_samples,
                                   "rate_hz": r.rate_hz, "held_without_stall": r.held} for r in rows]
                           for name, rows in curves.items()}, indent=1))

@@ -55,7 +55,8 @@ def add_parser(sub) -> None:
                    help="ramp to bias within S seconds when falling back (default: the DBC's FallbackRampMs)")
     p.add_argument("--stats", metavar="FILE",
                    help="write what the DAQ saw as JSON when it stops: samples, answers, and the stalls the "
-                        "stacks held one voltage through (the longest, per minute of plant time), in samples and ms")
+                        "stacks held one voltage through (the longest, per minute of plant time), in samples "
+                        "and ms")
     p.set_defaults(run=run_plant)
 
     b = sub.add_parser(
@@ -122,7 +123,8 @@ def run_plant(args: argparse.Namespace) -> int:
           f"{emulator.voltage_frames} voltage frames, {emulator.missed_answers} missed answers, "
           f"{emulator.skipped} not sent (this process late), "
           f"{sum(emulator.rejected.values())} rejected, {emulator.fallbacks} fallbacks to bias, "
-          f"load {plant.axial_load:.0f} N, deflection {1e3 * d:.3f} mm at {angle:.0f} deg; the stacks held one "
+          f"load {plant.axial_load:.0f} N, deflection {1e3 * d:.3f} mm at {angle:.0f} deg; "
+          "the stacks held one "
           f"voltage through at most {emulator.held_longest} samples "
           f"({1e3 * emulator.held_longest * plant.config.period_s:.2f} ms)")
     if stats is not None:

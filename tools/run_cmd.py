@@ -125,7 +125,8 @@ def _print_summary(args: argparse.Namespace, cfg, service: Service, outcome: Ser
         stalls = t.get("stalls", {})
         if stalls.get("count"):
             ms = 1e3 / table.design.sample_rate_hz
-            print(f"  stalls ridden through: {stalls['count']}, the longest {stalls['longest_samples'] * ms:.2f} ms "
+            print(f"  stalls ridden through: {stalls['count']}, "
+                  f"the longest {stalls['longest_samples'] * ms:.2f} ms "
                   f"(the live limit then {stalls['limit_at_longest_samples'] * ms:.2f} ms), the least room "
                   f"under the limit {stalls['least_room_samples'] * ms:.2f} ms")
         tel = result.telemetry

@@ -26,8 +26,7 @@ from beamctl.gains.rig import RigPlane
 from beamctl.gains.schedule import GainSchedule
 from beamctl.gains.table import GainTableError, content_sha256, load_table, write_table
 from beamctl.models.analysis import critical_load
-from beamctl.models.fe import build_model
-from beamctl.models.fe import plane_indices
+from beamctl.models.fe import build_model, plane_indices
 from beamctl.models.modal import reduce
 from tests.rounding import EPS, assert_within, eigenvector_rounding, product_rounding, symmetric_pencil
 
@@ -216,9 +215,11 @@ def _falling_growth(d):
 
 @pytest.mark.parametrize(("edit", "key", "words"), [
     (lambda d: d["compensator"]["predict"][1].pop(), "compensator.predict", "shape"),
-    (lambda d: d["ride_through"].__setitem__("criterion", "relative"), "ride_through.criterion", "'absolute'"),
+    (lambda d: d["ride_through"].__setitem__("criterion", "relative"), "ride_through.criterion",
+     "'absolute'"),
     (lambda d: d["ride_through"].pop("confidence_sigma"), "ride_through.confidence_sigma", "this field"),
-    (lambda d: d["ride_through"].__setitem__("confidence_sigma", 0.0), "ride_through.confidence_sigma", "> 0"),
+    (lambda d: d["ride_through"].__setitem__("confidence_sigma", 0.0), "ride_through.confidence_sigma",
+     "> 0"),
     (lambda d: d["ride_through"].__setitem__("note", 1), "ride_through.note", "only the fields"),
     (lambda d: d.__setitem__("ride_through", [1, 2]), "ride_through", "mapping"),
     (lambda d: d["ride_through"]["gap_grid_samples"].__setitem__(1, 1), "ride_through.gap_grid_samples",
@@ -264,7 +265,8 @@ def test_a_table_written_before_the_prediction_and_the_ride_through_still_loads(
     assert GainSchedule.from_table(old).matrices_at(2500.0).predict is None
 
 
-def test_a_table_of_the_relative_criterion_loads_and_the_engine_uses_its_fixed_limits(tmp_path, small_lqg_text):
+def test_a_table_of_the_relative_criterion_loads_and_the_engine_uses_its_fixed_limits(
+        tmp_path, small_lqg_text):
     """A section of an earlier version ('the RMS at most doubles': growth_limit) is not a
     survival criterion: the table loads, its section is not used (None), and the controller
     takes the fixed limits of a table without an analysis."""
@@ -379,7 +381,8 @@ def test_the_growth_of_a_gap_is_the_time_domain_s_at_3300_n(paper_model, shipped
         analysis = GrowthAnalysis(gap_loop(nominal_rig(paper_model, shipped), load, point, comp.h,
                                            comp.plane_states["y"], comp.period_s, "hold"))
         expected = analysis.growth([gap])[:, 0]
-        q, f = _time_domain_growth(paper_model, shipped, load, gap, runs=200, events=20, spacing=250, seed=gap)
+        q, f = _time_domain_growth(paper_model, shipped, load, gap, runs=200, events=20, spacing=250,
+                                   seed=gap)
         assert q.max() == pytest.approx(expected[0], rel=0.04), (gap, q.max(), expected)
         assert f.max() <= 1.04 * expected[1:].max(), (gap, f.max(), expected)
         if i is not None:

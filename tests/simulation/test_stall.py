@@ -47,7 +47,8 @@ def _say(o) -> str:
 
 def _held_here(rig, load):
     if not rig.nominal and load > ONSET_MARGIN * TABLE.robust["onset_N"]:
-        pytest.skip(f"{load:g} N: the worst rig is not held there (unstable from {TABLE.robust['onset_N']:.0f} N)")
+        pytest.skip(f"{load:g} N: the worst rig is not held there "
+                    f"(unstable from {TABLE.robust['onset_N']:.0f} N)")
 
 
 @pytest.mark.parametrize("load", LOADS)
@@ -78,4 +79,5 @@ def test_at_3300_n_the_live_limit_is_10_ms_nominal_and_5_ms_on_the_worst_rig(rig
     floor_ms = 10.0 if rig.nominal else 5.0
     limit = rig.run(3300.0, 1).limit_samples
     assert 1e3 * limit / rig.rate >= floor_ms, (
-        f"the live limit at 3300 N is {1e3 * limit / rig.rate:.1f} ms ({limit:g} samples), below {floor_ms:g} ms")
+        f"the live limit at 3300 N is {1e3 * limit / rig.rate:.1f} ms ({limit:g} samples), "
+        f"below {floor_ms:g} ms")

@@ -231,7 +231,8 @@ def test_stalls_compares_the_live_limit_with_the_survival_edge_as_json(capsys):
     assert "stalls, nominal" in captured.err and "100 %" in captured.err, "progress on stderr"
 
 
-@pytest.mark.parametrize("flags, named", [(["--loads", "3950"], "--loads"), (["--loads", "3300,x"], "--loads"),
+@pytest.mark.parametrize("flags, named", [(["--loads", "3950"], "--loads"),
+                                          (["--loads", "3300,x"], "--loads"),
                                           (["--rig", "softest"], "--rig")])
 def test_stalls_refuses_loads_beyond_the_table_and_unknown_rigs(flags, named, capsys):
     assert main(["gains", "stalls", *flags]) == 2
