@@ -87,7 +87,7 @@ CONTROLLER_DEFAULTS: dict[str, Any] = {
     "safety": {
         "strain_limit_fraction": 0.5,   # of the proportional-limit strain sigma_p / E
         "load_range_n": [-200.0, 5000.0],  # load-cell range; the gain table's range applies too
-        # Ride-through: samples missing in a row that are bridged by the estimator's prediction
+        # Ride-through: the samples the stacks may hold one voltage (a stall: samples missing, a silence)
         # (more: STALE_INPUT), the answer budget (an answer sent later than this many periods
         # after its sample arrived is late) and the late answers in a row tolerated (more:
         # LATE_ANSWERS). null: the limits of the gain table's ride-through analysis, computed

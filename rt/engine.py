@@ -2,8 +2,8 @@
 
 Everything that happens per sample is here, in one implementation that the service loop, the
 offline simulations (simulation/simkernel.py runs it inside its compiled loop) and the checks all run:
-input checks, the load filter and the schedule, the bridge over missing samples by the
-estimator's prediction, integral action with anti-windup, the law, allocation to the six
+input checks, the load filter and the schedule, the bridge over missing samples (the
+estimate held), integral action with anti-windup, the law, allocation to the six
 stacks with the clamp to the voltage range, excitation, the bumpless fade-in, the applied
 forces and the compensator's update, the saturation and late-answer counts, every fault
 decision and the one ramp to bias. Python (rt/controller.py, rt/loop.py) is the supervisor
