@@ -65,7 +65,15 @@ from beamctl.hal.frames import (
 )
 
 CAN_ERR_BUSOFF = 0x40          # SocketCAN error class bit in an error frame's identifier
-LOAD_SILENCE_DIVISORS = 5      # load frames that may be missed before the load counts as stale
+# A load value is used for this long (samples of the DAQ's clock, those lost on the way included)
+# before the load counts as stale: the rig loads quasi-statically (50 N/s moves it 5 N in that
+# time) and the ride-through takes a DAQ this silent for stopped (gains/ridethrough.py,
+# GAP_HORIZON_S); lost load frames alone (a short receive queue, a stall) are not a fault.
+LOAD_SILENCE_S = 0.1
+# The read polls the bus for at most this share of a period: a loop that never sleeps uses all of
+# its CPU, and Linux holds a real-time thread above 95 % of one for 50 ms a second
+# (kernel.sched_rt_runtime_us); the loop's own work takes a further 20 to 30 % here at 6000 Hz.
+SPIN_SHARE_MAX = 0.5
 RATE_WINDOW_S = 0.2            # seconds of strain frames over which the DAQ's rate is measured
 # A frame's bus time stamp is its arrival time when it lies within this much before the
 # receive time (socketcan's kernel stamps, the virtual and local buses' send times); interfaces
@@ -94,6 +102,12 @@ class CanBackend(HalBase):
         super().__init__(sample_rate_hz)
         if not spin_s >= 0.0:
             raise HalConfigurationError(f"spin time {spin_s!r} s: expected a time >= 0")
+        if spin_s > SPIN_SHARE_MAX / sample_rate_hz:
+            raise HalConfigurationError(
+                f"spin time {spin_s * 1e6:g} us: expected at most {100 * SPIN_SHARE_MAX:g} % of the period "
+                f"({SPIN_SHARE_MAX / sample_rate_hz * 1e6:.0f} us at {sample_rate_hz:g} Hz): a loop polling "
+                f"longer takes nearly all of its CPU, and Linux then holds a real-time thread for 50 ms a "
+                f"second (kernel.sched_rt_runtime_us)")
         self.spin_s = float(spin_s)
         self.newest_only = bool(newest_only)
         self._due = 0.0             # time.monotonic() when the next sample is due
@@ -152,7 +166,7 @@ class CanBackend(HalBase):
         ks[f.K_N_VOLTAGES] = len(VOLTAGE_SIGNALS)
         ks[f.K_VOLTAGE_ORDER:f.K_VOLTAGE_ORDER + len(VOLTAGE_SIGNALS)] = c.voltages.order(VOLTAGE_SIGNALS)
         ks[f.K_BUSOFF_MASK] = CAN_ERR_BUSOFF
-        ks[f.K_LOAD_SILENCE] = LOAD_SILENCE_DIVISORS * c.load.divisor
+        ks[f.K_LOAD_SILENCE] = max(c.load.divisor, int(round(LOAD_SILENCE_S * self.sample_rate_hz)))
         ks[f.K_RATE_WINDOW] = self._rate_window
         ks[f.K_STATUS_DIVISOR] = c.status.divisor
         ks[f.K_RAW_FLAGS], ks[f.K_RAW_DLC] = localbus.RAW_FLAGS, localbus.RAW_DLC
@@ -381,7 +395,8 @@ class CanBackend(HalBase):
             raise HalConnectionLost("can: bus-off")
         if code == T_LOAD_STALE:
             raise HalProtocolError(f"can: no {c.load.name} frame for {int(self._ks[K_SINCE_LOAD])} "
-                                   f"samples (expected every {c.load.divisor})")
+                                   f"samples (expected every {c.load.divisor}; a load value is used for "
+                                   f"{1e3 * LOAD_SILENCE_S:g} ms at most)")
         if code == T_RATE:
             raise HalProtocolError(f"can: {c.strains.name} arrive at {self.measured_rate_hz:.0f} Hz; the "
                                    f"gains are designed for {self.sample_rate_hz:g} Hz (tolerance "

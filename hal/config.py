@@ -36,8 +36,10 @@ HAL_DEFAULTS: dict[str, Any] = {
     "can": {"interface": "socketcan", "channel": "can0", "bitrate_bit_s": 1_000_000, "fd": True,
             "data_bitrate_bit_s": 4_000_000, "dbc": "", "record": "", "rate_tolerance": 0.05,
             # poll the bus for the last spin_s before each sample is due instead of sleeping
-            # (hal/can_backend.py): the answer's latency for a share of a CPU; 0 sleeps always
-            "spin_s": 1.2e-4},
+            # (hal/can_backend.py): the answer's latency for a share of a CPU; 0 sleeps always; at
+            # most half the period (SPIN_SHARE_MAX: Linux throttles a real-time thread that takes
+            # 95 % of its CPU, a 50 ms stall a second: 120 us at 6000 Hz did)
+            "spin_s": 6.0e-5},
 }
 
 # Keys renamed to carry their unit: a file that still sets an old one is refused, naming the new.

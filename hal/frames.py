@@ -521,7 +521,7 @@ def _take(flags, frame_id, dlc, data, offset, n, stamp, now, ks, fs):
         return (T_RATE, seq, np.int64(0), arrival, 0.0)
     if ks[K_HAVE_LOAD] == 0:
         return _none()                               # no load value yet: not a complete sample
-    ks[K_SINCE_LOAD] += 1
+    ks[K_SINCE_LOAD] += 1 + ks[K_SEQUENCE + A_SKIPPED]   # samples of the DAQ's clock, lost ones too
     if ks[K_SINCE_LOAD] > ks[K_LOAD_SILENCE]:
         return (T_LOAD_STALE, seq, np.int64(0), arrival, 0.0)
     for i in range(ks[K_N_STRAINS]):

@@ -432,11 +432,8 @@ class Plant:
                 _shared_cells[key] = entry
         return entry
 
-    def _use_load(self, axial_load: float) -> None:
-        cell = 2.0 * self.config.load_tolerance
-        index = round(axial_load / cell)
-        if index == self._bin:
-            return
+    def _cell(self, index: int) -> tuple[np.ndarray, np.ndarray]:
+        """The shared discretisation of cell ``index``, made now if no plant has made it."""
         key = (self._fingerprint, index)
         with _shared_lock:
             entry = _shared_cells.get(key)
@@ -448,8 +445,30 @@ class Plant:
                 _shared_cells[key] = entry
                 while len(_shared_cells) > SHARED_CELLS:
                     _shared_cells.popitem(last=False)
+        return entry
+
+    def _use_load(self, axial_load: float) -> None:
+        cell = 2.0 * self.config.load_tolerance
+        index = round(axial_load / cell)
+        if index == self._bin:
+            return
         self._bin = index
-        self._ad, self._bd = entry
+        self._ad, self._bd = self._cell(index)
+
+    def prepare(self) -> int:
+        """Make now every discretisation the load programme will step through (from its start
+        load to its end load), so that a run in wall-clock time never stops to make one (an
+        exact cell takes milliseconds: a DAQ that stops that long is a stall the controller has
+        to ride through). Returns the number of cells."""
+        cell = 2.0 * self.config.load_tolerance
+        load = self.config.load
+        low, high = sorted((round(load.start / cell), round(load.end / cell)))
+        if high - low + 1 > SHARED_CELLS:
+            raise ValueError(f"a load programme from {load.start:g} to {load.end:g} N passes "
+                             f"{high - low + 1} cells of {cell:g} N; at most {SHARED_CELLS} are kept")
+        for index in range(low, high + 1):
+            self._cell(index)
+        return high - low + 1
 
     # -- simulation ------------------------------------------------------------------------
     def reset(self, time_s: float = 0.0) -> None:

@@ -105,7 +105,9 @@ CONTROLLER_DEFAULTS: dict[str, Any] = {
     # saturated sample (triggered)
     "telemetry": {"buffer_time_s": 20.0, "flush_interval_s": 0.25, "mode": "full", "decimation": 10,
                   "pre_trigger_s": 1.0, "post_trigger_s": 2.0},
-    "realtime": {"priority": 80, "cpu": -1, "lock_memory": True},
+    # the loop at SCHED_FIFO ``priority``; the process's other threads (telemetry, the control
+    # socket, the live view) at SCHED_FIFO ``helper_priority``, just below it (rt/realtime.py)
+    "realtime": {"priority": 80, "helper_priority": 79, "cpu": -1, "lock_memory": True},
 }
 
 # Keys renamed to carry their unit: a file that still sets an old one is refused, naming the new.
@@ -149,7 +151,8 @@ _SCHEMA = {
                   "mode": choice(*RECORDING_MODES), "decimation": integer(low=1),
                   "pre_trigger_s": number("s", low=0.0, high=MAX_PRE_TRIGGER_S),
                   "post_trigger_s": nonnegative("s")},
-    "realtime": {"priority": integer(low=1, high=99), "cpu": integer(low=-1), "lock_memory": boolean()},
+    "realtime": {"priority": integer(low=2, high=99), "helper_priority": integer(low=1, high=98),
+                 "cpu": integer(low=-1), "lock_memory": boolean()},
 }
 
 
@@ -184,6 +187,7 @@ class Telemetry:
 @dataclass(frozen=True)
 class Realtime:
     priority: int
+    helper_priority: int
     cpu: int
     lock_memory: bool
 
@@ -220,6 +224,11 @@ def controller_config(overrides: dict[str, Any] | None = None, source: str = "",
     s = v["safety"]
     if not s["load_range_n"][0] < s["load_range_n"][1]:
         raise ConfigError(f"{prefix}safety.load_range_n", list(s["load_range_n"]), "low < high", source)
+    r = v["realtime"]
+    if not r["helper_priority"] < r["priority"]:
+        raise ConfigError(f"{prefix}realtime.helper_priority", r["helper_priority"],
+                          f"below realtime.priority = {r['priority']} (the process's other threads "
+                          f"must never hold the loop up)", source)
     return ControllerConfig(
         pacing=v["pacing"], anti_windup=v["anti_windup"], allocation=v["allocation"],
         start_ramp_time_s=v["start_ramp_time_s"],

@@ -303,6 +303,7 @@ class ControlLoop:
                 rt_report = realtime.acquire(self.controller.config.realtime, require_rt)
             self.hal.open()             # after the real-time set-up: nothing queues meanwhile
             self._arm()
+            cpu0, wall0 = time.thread_time(), time.monotonic()
             try:
                 self._cycle_until_done()
             except BaseException:       # a bug, or an exit from a callback: the stacks first
@@ -310,6 +311,9 @@ class ControlLoop:
                 raise
             finally:
                 self._announce()
+                wall = time.monotonic() - wall0
+                if wall > 0.0:
+                    self.timing.cpu_share = (time.thread_time() - cpu0) / wall
         finally:
             self._end_commands()
             if acquire_rt:

@@ -1,7 +1,20 @@
-"""Real-time privileges on Linux: SCHED_FIFO priority, CPU affinity (the process's other threads
-kept off the loop's CPU), locked memory, and the garbage collector frozen and disabled for the
-run. Each is asked for when permitted and
-reported as granted or refused; with ``require`` a refusal is an error."""
+"""Real-time privileges on Linux: SCHED_FIFO priority, CPU affinity, locked memory, and the
+garbage collector frozen and disabled for the run. Each is asked for when permitted and reported
+as granted or refused; with ``require`` a refusal is an error.
+
+The process's other threads (telemetry, the control socket, the live view) share the
+interpreter's lock with the loop: whichever of them holds it when a sample arrives holds the loop
+up until it lets go. Two things bound that wait. The other threads run SCHED_FIFO too, at
+``helper_priority`` (just below the loop's, above any other task), off the loop's CPU when it
+has one: a thread holding the lock can be kept off its CPU for tens of ms by any task of a higher
+class or priority (measured with the scheduler's trace: the loop waiting 18 ms for the lock held
+by the telemetry writer, of the normal class, itself waiting behind a daemon at nice -10; at
+SCHED_FIFO 20, behind the simulated DAQ's process at 70, stalls of about 1 ms every flush of the
+writer), and one waiting
+on the loop's CPU is given its turn by the kernel's fair server (up to 50 ms a second) however
+high the loop's priority. And the interpreter's switch interval is ``SWITCH_INTERVAL_S`` for the
+run (5 ms by default: a thread computing in Python would keep the lock that long once the loop
+asks for it)."""
 
 from __future__ import annotations
 
@@ -9,11 +22,13 @@ import ctypes
 import ctypes.util
 import gc
 import os
+import sys
 import threading
 
 from beamctl.rt.config import Realtime
 
 MCL_CURRENT, MCL_FUTURE = 1, 2
+SWITCH_INTERVAL_S = 1e-4    # the interpreter's switch interval during the run
 _previous: dict = {}
 
 
@@ -31,32 +46,64 @@ def _mlockall() -> str | None:
     return None
 
 
-def _keep_off(cpu: int) -> str:
-    """Move the process's other threads (telemetry, the control socket, the live view: started
-    before the loop takes its CPU, and never scheduled beside it) to every CPU but ``cpu``: a
-    thread of the normal class waiting on the loop's CPU is given its turn by the kernel's fair
-    server (up to 50 ms a second) however high the loop's priority, a stall of the loop's own
-    making."""
+def _helpers(cpu: int, priority: int) -> str:
+    """Put the process's other threads (started before the loop takes its CPU) at SCHED_FIFO
+    ``priority`` and, when the loop has a CPU, on every CPU but that one; remember how they were."""
     others = set(os.sched_getaffinity(0)) | set(range(os.cpu_count() or 1))
-    others.discard(cpu)
-    if not others:
-        return f"refused: no CPU but {cpu} to keep them on"
+    if cpu >= 0:
+        others.discard(cpu)
+        if not others:
+            return f"refused: no CPU but {cpu} to keep them on"
     me = threading.get_native_id()
-    moved = 0
     try:
         tasks = [int(t) for t in os.listdir("/proc/self/task")]
     except OSError as exc:
         return f"refused: /proc/self/task: {exc.strerror}"
+    moved, refusals = 0, set()
     for tid in tasks:
         if tid == me:
             continue
         try:
-            os.sched_setaffinity(tid, others)
-            moved += 1
-        except OSError:
-            pass
-    _previous["kept_off"] = tasks
-    return f"granted: {moved} kept off CPU {cpu} (on {', '.join(str(c) for c in sorted(others))})"
+            before = (os.sched_getscheduler(tid), os.sched_getparam(tid), os.sched_getaffinity(tid))
+        except OSError:         # ended meanwhile
+            continue
+        try:
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+            if cpu >= 0:
+                os.sched_setaffinity(tid, others)
+        except OSError as exc:
+            refusals.add(exc.strerror)
+            _restore_thread(tid, before)
+            continue
+        _previous.setdefault("helpers", {})[tid] = before
+        moved += 1
+    if refusals:
+        return f"refused: SCHED_FIFO priority {priority}: {'; '.join(sorted(refusals))}"
+    where = f", kept off CPU {cpu} (on {', '.join(str(c) for c in sorted(others))})" if cpu >= 0 else ""
+    return f"granted: {moved} at SCHED_FIFO priority {priority}{where}"
+
+
+def _restore_thread(tid: int, before: tuple) -> None:
+    policy, param, affinity = before
+    try:
+        os.sched_setscheduler(tid, policy, param)
+        os.sched_setaffinity(tid, affinity)
+    except OSError:             # ended meanwhile
+        pass
+
+
+def rt_budget_share() -> float | None:
+    """The share of a CPU Linux lets real-time threads take (kernel.sched_rt_runtime_us over
+    sched_rt_period_us; a thread past it is held for the rest of the period): 1.0 when unlimited,
+    None where unknown."""
+    try:
+        with open("/proc/sys/kernel/sched_rt_runtime_us") as f:
+            runtime = int(f.read())
+        with open("/proc/sys/kernel/sched_rt_period_us") as f:
+            period = int(f.read())
+    except (OSError, ValueError):
+        return None
+    return 1.0 if runtime < 0 or period <= 0 else runtime / period
 
 
 def acquire(settings: Realtime, require: bool = False) -> dict[str, str]:
@@ -80,8 +127,16 @@ def acquire(settings: Realtime, require: bool = False) -> dict[str, str]:
             report["affinity"] = f"granted CPU {settings.cpu}"
         except (OSError, AttributeError) as exc:
             report["affinity"] = f"refused: CPU {settings.cpu}: {getattr(exc, 'strerror', exc)}"
-        else:
-            report["other threads"] = _keep_off(settings.cpu)
+    if hasattr(os, "sched_setscheduler"):
+        report["other threads"] = _helpers(settings.cpu, settings.helper_priority)
+    _previous["switch_interval"] = sys.getswitchinterval()
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
+    report["switch interval"] = f"granted {SWITCH_INTERVAL_S * 1e6:g} us"
+    budget = rt_budget_share()
+    if budget is not None:
+        report["kernel budget"] = ("unlimited (kernel.sched_rt_runtime_us -1)" if budget >= 1.0 else
+                                   f"{100 * budget:g} % of a CPU (kernel.sched_rt_runtime_us): a loop taking "
+                                   f"more is held for the rest of each second")
     if settings.lock_memory:
         error = _mlockall()
         report["memory"] = "granted mlockall" if error is None else f"refused: mlockall: {error}"
@@ -99,9 +154,14 @@ def acquire(settings: Realtime, require: bool = False) -> dict[str, str]:
 
 
 def release() -> None:
-    """Undo ``acquire``: the garbage collector, memory lock, scheduler and affinity as before."""
+    """Undo ``acquire``: the garbage collector, switch interval, memory lock, scheduler and
+    affinity (the loop's and the other threads') as before."""
     gc.enable()
     gc.unfreeze()
+    if "switch_interval" in _previous:
+        sys.setswitchinterval(_previous.pop("switch_interval"))
+    for tid, before in _previous.pop("helpers", {}).items():
+        _restore_thread(tid, before)
     if _previous.pop("locked", False):
         libc_name = ctypes.util.find_library("c")
         if libc_name:

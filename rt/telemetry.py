@@ -257,7 +257,9 @@ class TelemetryWriter:
             first = tail                # the sample index of the chunk's first record
             for chunk in chunks:
                 for rows in ([chunk] if self._select is None else self._select.select(chunk, first)):
-                    self._file.write(rows.astype("<f8", copy=False).tobytes())
+                    # the ring's rows as they are (no copy: the interpreter's lock is let go
+                    # while the kernel copies them, and the loop may need it)
+                    self._file.write(memoryview(np.ascontiguousarray(rows, dtype="<f8")).cast("B"))
                     self.written += len(rows)
                 first += len(chunk)
         self._publish(chunks, tail, final)     # before the tail moves on: the loop may then reuse the rows

@@ -100,8 +100,13 @@ class LoopTiming:
         self.overruns = 0          # cycles that ended after their deadline
         self.missed_periods = 0    # periods skipped after overruns
         self.stalls = StallLog()
+        # the loop thread's CPU time over the wall time it cycled: Linux holds a real-time thread
+        # whose share passes kernel.sched_rt_runtime_us / sched_rt_period_us (95 %) for the rest of
+        # the second
+        self.cpu_share = math.nan
 
     def summary(self) -> dict:
         out = {name: getattr(self, name).summary() for name in self.STAGES}
-        out.update(overruns=self.overruns, missed_periods=self.missed_periods, stalls=self.stalls.summary())
+        out.update(overruns=self.overruns, missed_periods=self.missed_periods, stalls=self.stalls.summary(),
+                   loop_cpu_share=self.cpu_share)
         return out

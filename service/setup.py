@@ -180,6 +180,13 @@ def table_reader() -> None:
         answers.flush()
 
 
+READER_SOURCE = ("import os\n"
+                 "if hasattr(os, 'sched_setscheduler'):\n"
+                 "    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))\n"
+                 "from beamctl.service.setup import table_reader\n"
+                 "table_reader()\n")
+
+
 class TableSwaps:
     """Gain tables for the running service to swap in at bias (``prepare(path)``), through the
     checks of its start (``load_gain_table``, ``check_voltage_range``) and the rig's: the table
@@ -202,8 +209,10 @@ class TableSwaps:
         import pickle
 
         if self._reader is None or self._reader.poll() is not None:
+            # started from a thread at SCHED_FIFO (rt/realtime.py): the reader drops to the normal
+            # class before anything else, so that its seconds of parsing never compete with the loop
             self._reader = subprocess.Popen(
-                [sys.executable, "-c", "from beamctl.service.setup import table_reader; table_reader()"],
+                [sys.executable, "-c", READER_SOURCE],
                 stdin=subprocess.PIPE, stdout=subprocess.PIPE)
         try:
             pickle.dump((self.cfg, path), self._reader.stdin)

@@ -106,9 +106,10 @@ class StallRig:
         return Plant(self.model, plant_config(settings))
 
     def run(self, load_n: float, gap: int, lift: bool = False, settle_s: float = SETTLE_S,
-            after_s: float = AFTER_S) -> StallOutcome:
+            after_s: float = AFTER_S, before: tuple[int, int] = (0, 0)) -> StallOutcome:
         """A stall of ``gap`` samples at ``load_n`` (``lift``: the engine's limit lifted, so that
-        it bridges the stall whatever its length)."""
+        it bridges the stall whatever its length); ``before``: (stall, samples answered) a first
+        stall and the samples answered after it before this one begins (within its recovery)."""
         plant = self._plant(load_n)
         c = Controller(self.table, self.config)
         if lift:
@@ -118,6 +119,7 @@ class StallRig:
         sample = Sample()
         seq = 0
         forces = np.zeros(4)
+        strain_top, swing, saturated = 0.0, 0.0, False
 
         def measure() -> None:
             nonlocal seq
@@ -132,6 +134,35 @@ class StallRig:
             np.dot(self.force_matrix, voltages - self.bias, out=forces)
             plant.step(forces)
 
+        def stall(samples: int) -> np.ndarray:
+            """The stacks hold the last answer for ``samples`` samples the controller never
+            sees; then the newest arrives with them missed (not yet answered)."""
+            nonlocal strain_top
+            held = c.voltages.copy()
+            for _ in range(samples):
+                measure()
+                strain_top = max(strain_top, float(np.abs(sample.strains).max()))
+                apply(held)
+            measure()
+            sample.missed = samples
+            return held
+
+        def answer(samples: int, held: np.ndarray) -> bool:
+            """The sample in hand and ``samples`` - 1 more answered; False once not RUNNING."""
+            nonlocal strain_top, swing, saturated
+            for k in range(samples):
+                if k:
+                    measure()
+                    sample.missed = 0
+                v = c.step(sample)
+                if c.state.name != "RUNNING":
+                    return False
+                saturated |= bool(np.any(v <= self.v_range[0]) or np.any(v >= self.v_range[1]))
+                swing = max(swing, float(np.abs(v - held).max()))
+                strain_top = max(strain_top, float(np.abs(sample.strains).max()))
+                apply(v)
+            return True
+
         measure()
         c.arm(sample)
         c.start()
@@ -141,25 +172,9 @@ class StallRig:
             sample.missed = 0
             apply(c.step(sample))
         limit = c.gap_limit
-        held = c.voltages.copy()
-        strain_top, swing, saturated = 0.0, 0.0, False
-        for _ in range(gap):                        # the stall: nothing reaches the controller
-            measure()
-            strain_top = max(strain_top, float(np.abs(sample.strains).max()))
-            apply(held)
-        measure()
-        sample.missed = gap
-        for k in range(int(round(after_s * self.rate)) + 1):
-            if k:
-                measure()
-                sample.missed = 0
-            v = c.step(sample)
-            if c.state.name != "RUNNING":
-                break
-            saturated |= bool(np.any(v <= self.v_range[0]) or np.any(v >= self.v_range[1]))
-            swing = max(swing, float(np.abs(v - held).max()))
-            strain_top = max(strain_top, float(np.abs(sample.strains).max()))
-            apply(v)
+        first, between = before
+        if first <= 0 or answer(max(between, 1), stall(first)):
+            answer(int(round(after_s * self.rate)) + 1, stall(gap))
         fault = c.supervisor.fault.name if c.supervisor.fault.name != "NONE" else ""
         fraction = strain_top / self.strain_limit
         survived = not fault and not saturated and fraction < 1.0

@@ -8,6 +8,7 @@ import json
 import signal
 import sys
 import threading
+import time
 from pathlib import Path
 
 from beamctl.common.outputs import check_file, write_text
@@ -108,7 +109,17 @@ def run_plant(args: argparse.Namespace) -> int:
     # service takes (SCHED_FIFO below the controller's, locked memory, the garbage collector
     # frozen: a collection stalls the plant for milliseconds), where granted
 
-    granted = realtime.acquire(Realtime(priority=EMULATOR_PRIORITY, cpu=-1, lock_memory=True))
+    if args.pace == "wallclock":     # a DAQ keeps its clock: no discretisation made on the way
+        t0 = time.monotonic()
+        try:
+            cells = plant.prepare()
+        except ValueError as exc:
+            print(f"beamctl plant: error: {exc}", file=sys.stderr)
+            return 2
+        print(f"plant: {cells} discretisations of the load programme made in {time.monotonic() - t0:.1f} s",
+              flush=True)
+    granted = realtime.acquire(Realtime(priority=EMULATOR_PRIORITY, helper_priority=EMULATOR_PRIORITY - 1,
+                                              cpu=-1, lock_memory=True))
     print(f"plant real-time set-up: {granted.get('scheduler', '-')}; garbage collector "
           f"{granted.get('gc', '-')}", flush=True)
     try:

@@ -114,7 +114,8 @@ def _print_summary(args: argparse.Namespace, cfg, service: Service, outcome: Ser
         print(f"  {result.cycles} cycles; step p50 {t['compute']['p50_us']:.1f} us, p99 "
               f"{t['compute']['p99_us']:.1f} us, max {t['compute']['max_us']:.1f} us; cycle p50 "
               f"{t['cycle']['p50_us']:.1f} us; {t['overruns']} overruns, "
-              f"{t['missed_periods']} missed periods")
+              f"{t['missed_periods']} missed periods; the loop took {100 * t['loop_cpu_share']:.0f} % "
+              f"of a CPU")
         age = t["answer_age"]
         if age["count"]:
             budget_us = service.loop.controller.safety.answer_budget_s * 1e6

@@ -3,6 +3,7 @@ answer's age; codecs, budget, recording; the local bus's raw path."""
 
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import can
@@ -15,7 +16,7 @@ from hypothesis import strategies as st
 from beamctl import hal
 from beamctl.hal.base import HalConfigurationError, HalConnectionLost, HalStaleData
 from beamctl.hal.budget import bus_budget, check_budget, classic_frame_bits, fd_frame_time
-from beamctl.hal.can_backend import CanBackend
+from beamctl.hal.can_backend import LOAD_SILENCE_S, CanBackend
 from beamctl.hal.dbc import MESSAGES, Contract, default_dbc_path
 from beamctl.hal.e2e import crc8_sae_j1850, frame_crc
 from tests.hal.reference import reference_frame_crc
@@ -351,18 +352,48 @@ def test_no_sample_before_the_first_load_value(request):
 
 
 def test_strain_frames_without_load_frames_become_a_protocol_error(pair):
-    """The load cell comes every 10th sample; a sample whose load is more than five load
-    periods old is not a sample of the rig as it is (the gain schedule would run on a stale
-    load): the read raises, which the controller turns into a HAL fault and a ramp to bias."""
+    """The load cell comes every 10th sample; a sample whose load is older than LOAD_SILENCE_S
+    (0.1 s, 250 samples at 2500 Hz) is not a sample of the rig as it is (the gain schedule would
+    run on a stale load): the read raises, which the controller turns into a HAL fault and a ramp
+    to bias. Lost load frames alone are not (a short receive queue, a stall)."""
     backend, daq = pair                      # one load frame sent, then only strains
-    for _ in range(60):
+    allowed = int(round(LOAD_SILENCE_S * 2500.0))
+    for _ in range(allowed + 10):
         daq.strains()
     delivered = 0
-    with pytest.raises(hal.HalProtocolError, match="no DAQ_Load frame for 51 samples"):
-        for _ in range(60):
+    with pytest.raises(hal.HalProtocolError, match=f"no DAQ_Load frame for {allowed + 1} samples"):
+        for _ in range(allowed + 10):
             backend.read(timeout=0.5)
             delivered += 1
-    assert delivered == 50, "five load periods (50 samples) of strains use the last load"
+    assert delivered == allowed, f"0.1 s ({allowed} samples) of strains use the last load"
+
+
+def test_a_spin_longer_than_half_the_period_is_refused():
+    """A read polling for most of the period takes nearly all of its CPU, and Linux holds a
+    real-time thread above 95 % of one for 50 ms a second (kernel.sched_rt_runtime_us): measured
+    here, 120 us at 6000 Hz stalled the loop 50 ms once a second."""
+    with pytest.raises(HalConfigurationError, match="at most 50 % of the period"):
+        CanBackend(6000.0, "virtual", "spin", fd=True, data_bitrate_bit_s=4e6, spin_s=1.2e-4)
+    CanBackend(6000.0, "virtual", "spin", fd=True, data_bitrate_bit_s=4e6, spin_s=6e-5)
+
+
+def test_a_load_value_ages_by_the_samples_lost_too(pair):
+    """The age of the load value is counted in samples of the DAQ's clock: strain frames lost on
+    the way (a jump of the sequence, plausible for the time that passed) age it as much as those
+    delivered. Jumps of 101 samples: the third takes the load past 250 samples."""
+    backend, daq = pair
+    daq.strains()
+    backend.read(timeout=0.5)
+    for age in (102, 203):
+        daq.seq = (daq.seq + 100) & 0xFF
+        time.sleep(0.06)                     # longer than the 100 samples lost (40 ms at 2500 Hz)
+        daq.strains()
+        assert backend.read(timeout=0.5).missed == 100, f"a load {age} samples old is still used"
+    daq.seq = (daq.seq + 100) & 0xFF
+    time.sleep(0.06)
+    daq.strains()
+    with pytest.raises(hal.HalProtocolError, match="no DAQ_Load frame for 304 samples"):
+        backend.read(timeout=0.5)
 
 
 def test_voltage_and_heartbeat_frames_follow_the_dbc(pair):

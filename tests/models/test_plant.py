@@ -156,6 +156,21 @@ def test_plants_of_one_rig_share_discretisations_and_step_the_same(paper_model):
     assert delayed.discretisations >= 1, "another I/O chain is another system: no shared cell"
 
 
+def test_a_prepared_plant_makes_no_discretisation_on_its_way(paper_model):
+    """``prepare`` makes every cell the load programme passes (a wall-clock DAQ must not stop to
+    make one: an exact cell takes milliseconds): stepping the whole ramp then makes none."""
+    cfg = plant_config({"load": {"start": 300.0, "end": 420.0, "rate": 3000.0}})
+    clear_discretisations()
+    plant = Plant(paper_model, cfg)
+    cells = plant.prepare()
+    assert cells == 121, "1 N cells from 300 to 420 N"
+    made = plant.discretisations
+    while plant.axial_load < 420.0:
+        plant.step(ZERO)
+    assert plant.discretisations == made, (
+        f"{plant.discretisations - made} cells made while stepping a prepared programme")
+
+
 def test_eccentric_load_bows_the_beam_away_from_the_load_line(paper_model):
     """A load applied at an offset compresses the fibres on its side more; the beam curves
     concave towards the offset and its middle moves the other way, so the lever arm grows."""

@@ -45,8 +45,10 @@ def test_plant_command_plays_the_daq_for_a_controller(capsys, tmp_path):
     skipped = int(re.search(r"(\d+) not sent", out).group(1))
     steps = np.diff(samples) % 256
     assert len(samples) == 200 and np.all(steps >= 1), f"samples out of order: {samples}"
-    assert np.sum(steps - 1) <= skipped, (
-        f"{np.sum(steps - 1)} samples missing between those read, the emulator skipped {skipped}")
+    # after the first sample: the emulator's first steps may be late on a busy machine (start-up),
+    # and a frame sent late among them may be refused by the sequence's plausibility window
+    assert np.sum(steps[1:] - 1) <= skipped, (
+        f"{np.sum(steps[1:] - 1)} samples missing between those read, the emulator skipped {skipped}")
     # the controller here answers 200 samples and stops: after its last answer the stacks hold
     # (no stall: nothing ends it), before it at least the samples skipped between two it answered;
     # the DAQ counts holds once the controller has answered twice (a stall before that is its
