@@ -105,11 +105,12 @@ class StallRig:
         settings["noise"] = {**RIG_SETTINGS["noise"], "seed": self.seed}
         return Plant(self.model, plant_config(settings))
 
-    def run(self, load_n: float, gap: int, lift: bool = False, settle_s: float = SETTLE_S,
+    def run(self, load_n: float, gap: int | None, lift: bool = False, settle_s: float = SETTLE_S,
             after_s: float = AFTER_S, before: tuple[int, int] = (0, 0)) -> StallOutcome:
-        """A stall of ``gap`` samples at ``load_n`` (``lift``: the engine's limit lifted, so that
-        it bridges the stall whatever its length); ``before``: (stall, samples answered) a first
-        stall and the samples answered after it before this one begins (within its recovery)."""
+        """A stall of ``gap`` samples at ``load_n`` (None: as long as the live limit when it
+        begins; ``lift``: the engine's limit lifted, so that it bridges the stall whatever its
+        length); ``before``: (stall, samples answered) a first stall and the samples answered
+        after it before this one begins (within its recovery: the live limit then is lower)."""
         plant = self._plant(load_n)
         c = Controller(self.table, self.config)
         if lift:
@@ -173,7 +174,12 @@ class StallRig:
             apply(c.step(sample))
         limit = c.gap_limit
         first, between = before
-        if first <= 0 or answer(max(between, 1), stall(first)):
+        if first > 0 and not answer(max(between, 1), stall(first)):
+            gap = 0
+        else:
+            limit = c.gap_limit
+            if gap is None:
+                gap = self.stall_samples(limit)
             answer(int(round(after_s * self.rate)) + 1, stall(gap))
         fault = c.supervisor.fault.name if c.supervisor.fault.name != "NONE" else ""
         fraction = strain_top / self.strain_limit
