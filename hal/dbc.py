@@ -165,8 +165,12 @@ class FrameCodec:
         flags = ((frames.EXTENDED_ID if msg.is_extended_id else 0)
                  | (frames.REMOTE_FRAME if msg.is_remote_frame else 0))
         data = msg.data
-        code = frames.validate(self.plan_int, self.plan_float, flags, msg.dlc, _bytes(data), len(data),
-                               self._values)
+        return self.reject_data(flags, msg.dlc, _bytes(data), len(data), out)
+
+    def reject_data(self, flags: int, dlc: int, data: np.ndarray, length: int, out) -> str | None:
+        """``reject`` of a frame given as its flags (``frames.EXTENDED_ID``, ``REMOTE_FRAME``),
+        DLC and the first ``length`` bytes of ``data`` (uint8)."""
+        code = frames.validate(self.plan_int, self.plan_float, flags, dlc, data, length, self._values)
         if code in (frames.R_OK, frames.R_RANGE):
             self._out(out)
         return frames.REJECT_NAMES[code]

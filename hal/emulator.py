@@ -33,6 +33,7 @@ stopped answering is not a stall: the DAQ falls back to bias on its own).
 
 from __future__ import annotations
 
+import struct
 import threading
 import time
 from collections.abc import Callable
@@ -40,12 +41,17 @@ from collections.abc import Callable
 import can
 import numpy as np
 
+from beamctl.hal import frames, localbus
 from beamctl.hal.dbc import STRAIN_SIGNALS, VOLTAGE_SIGNALS, Contract
+from beamctl.hal.e2e import _bytes
 from beamctl.models.actuators import StackGeometry
 from beamctl.models.plant import Plant
 
 PACES = ("wallclock", "lockstep")
 WAIT_SLICE_S = 0.05        # a lockstep wait looks at the stop request this often
+NOTHING = -1               # ``_recv``: no frame came
+_RAW_ID = struct.Struct("<I")
+_RAW_TIME = struct.Struct("<d")
 
 
 class CanPlantEmulator:
@@ -73,6 +79,8 @@ class CanPlantEmulator:
         self._voltages = np.full(6, geometry.bias_voltage_v)
         self._bias = np.full(6, geometry.bias_voltage_v)
         self._fallback_from = self._bias.copy()
+        self._swing = np.zeros(6)           # the voltages less bias, and the forces they give
+        self._forces = np.zeros(4)
         self._decoded = [0.0] * len(c.voltages.names)
         self._voltage_order = c.voltages.order(VOLTAGE_SIGNALS)
         self._voltage_sequence = c.voltages.index("sequence")
@@ -108,10 +116,60 @@ class CanPlantEmulator:
         self._samples_per_minute = max(1, int(round(60.0 / plant.config.period_s)))
         self.stop_event = threading.Event()
         self._thread: threading.Thread | None = None
+        # on the local bus the frames go as datagrams filled in place (localbus's fast path, as
+        # the CAN backend's): a DAQ's clock has no time for a can.Message per frame
+        self._raw = isinstance(bus, localbus.LocalBus)
+        if self._raw:
+            self._tx = {}
+            for codec in (c.strains, c.load):
+                frame = bus.raw_frame(codec.frame_id, codec.length)
+                data = np.frombuffer(frame, dtype=np.uint8)[localbus.RAW_DATA:][:codec.length]
+                self._tx[codec.frame_id] = (frame, data, np.zeros(len(codec.names)))
+            self._rx = bytearray(localbus.RAW_BUFFER_SIZE)
+            self._rx_data = np.frombuffer(self._rx, dtype=np.uint8)[localbus.RAW_DATA:]
 
     # -- one sample ----------------------------------------------------------------------------------
-    def _send(self, frame_id: int, data: bytes) -> None:
-        self.bus.send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=False))
+    def _send(self, codec, values: list) -> None:
+        if not self._raw:
+            self.bus.send(can.Message(arbitration_id=codec.frame_id, data=codec.encode(values),
+                                      is_extended_id=False))
+            return
+        frame, data, array = self._tx[codec.frame_id]
+        array[:] = values
+        if frames.encode(codec.plan_int, codec.plan_float, array, data):
+            codec.encode(values)        # says which value is out of the DBC's range
+        self.bus.send_raw(frame)
+
+    def _recv(self, timeout: float) -> int | None:
+        """Take the next frame within ``timeout`` (``_take``); NOTHING when none came."""
+        if not self._raw:
+            msg = self.bus.recv(timeout)
+            return NOTHING if msg is None else self._take(msg)
+        rx = self._rx
+        if not self.bus.recv_raw_into(rx, timeout):
+            return NOTHING
+        flags = rx[localbus.RAW_FLAGS]
+        if flags & localbus.ERROR_FRAME:
+            return None
+        return self._take_data(_RAW_ID.unpack_from(rx, localbus.RAW_ID)[0],
+                               flags & (frames.EXTENDED_ID | frames.REMOTE_FRAME), rx[localbus.RAW_DLC],
+                               self._rx_data, rx[localbus.RAW_LENGTH],
+                               _RAW_TIME.unpack_from(rx, localbus.RAW_TIME)[0])
+
+    def warm(self) -> None:
+        """Run the decoding of a voltage frame and the encoding of both frames once (their
+        compiled code loaded) before the clock starts: a DAQ that stops for it on its first
+        answer is a stall the controller has to ride through."""
+        c = self.contract
+        probe = np.zeros(max(c.voltages.length, 1), dtype=np.uint8)
+        c.voltages.reject_data(0, c.voltages.length, probe, c.voltages.length, [0.0] * len(c.voltages.names))
+        c.status.reject_data(0, c.status.length, probe, c.status.length, [0] * len(c.status.names))
+        for codec, values in ((c.strains, self._strain_values), (c.load, self._load_values)):
+            codec.encode(values)
+            if self._raw:
+                frame, data, array = self._tx[codec.frame_id]
+                array[:] = values
+                frames.encode(codec.plan_int, codec.plan_float, array, data)
 
     def _send_sample(self) -> None:
         c = self.contract
@@ -120,7 +178,7 @@ class CanPlantEmulator:
             lv = self._load_values
             lv[c.load.index("axial_load")] = min(max(load, -500.0), 6000.0)
             lv[c.load.index("sequence")] = (self.samples // c.load.divisor) & 0xFF
-            self._send(c.load.frame_id, c.load.encode(lv))
+            self._send(c.load, lv)
         v = self._strain_values
         limit = self._strain_limit          # a gauge beyond full scale is sent at full scale
         for k, i in enumerate(self._strain_order):
@@ -129,23 +187,29 @@ class CanPlantEmulator:
             v[i] = min(max(e, -limit), limit) if e == e else limit
         seq = self.samples % c.strains.sequence_modulus
         v[c.strains.index("sequence")] = seq
-        data = c.strains.encode(v)
         self._sent_at[seq] = time.time()
-        self._send(c.strains.frame_id, data)
+        self._send(c.strains, v)
 
     def _take(self, msg: can.Message) -> int | None:
         """Apply a received frame; for a valid voltage frame, return its sequence (the sample it
         answers), else None."""
-        c = self.contract
         if msg.is_error_frame:
             return None
-        frame_id = msg.arbitration_id
+        flags = ((frames.EXTENDED_ID if msg.is_extended_id else 0)
+                 | (frames.REMOTE_FRAME if msg.is_remote_frame else 0))
+        data = _bytes(msg.data)
+        return self._take_data(msg.arbitration_id, flags, msg.dlc, data, len(msg.data), msg.timestamp)
+
+    def _take_data(self, frame_id: int, flags: int, dlc: int, data: np.ndarray, length: int,
+                   timestamp: float) -> int | None:
+        """``_take`` of a frame given as its fields (the data's first ``length`` bytes)."""
+        c = self.contract
         if frame_id not in (c.voltages.frame_id, c.status.frame_id):
             return None
         codec = c.voltages if frame_id == c.voltages.frame_id else c.status
         values = self._decoded if codec is c.voltages else self._status_values
         rejected = self.rejected
-        fault = codec.reject(msg, values)
+        fault = codec.reject_data(flags, dlc, data, length, values)
         if fault is not None:
             rejected[fault] += 1
             return None
@@ -171,7 +235,7 @@ class CanPlantEmulator:
         self.falling_back = False
         sent = self._sent_at[seq]
         if 0 <= index < len(self.latencies_s) and sent == sent:
-            self.latencies_s[index] = msg.timestamp - sent
+            self.latencies_s[index] = timestamp - sent
         return seq
 
     def _fall_back(self) -> None:
@@ -194,7 +258,9 @@ class CanPlantEmulator:
 
     def _step_plant(self) -> None:
         self._fall_back()
-        self.plant.step(self._force_matrix @ (self._voltages - self._bias))
+        np.subtract(self._voltages, self._bias, out=self._swing)
+        np.dot(self._force_matrix, self._swing, out=self._forces)
+        self.plant.step(self._forces)
         self._count_hold()
         self.samples += 1
         if self.on_step is not None:
@@ -229,14 +295,14 @@ class CanPlantEmulator:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 break
-            msg = self.bus.recv(min(remaining, WAIT_SLICE_S))
-            if msg is not None and self._take(msg) == expected:
+            if self._recv(min(remaining, WAIT_SLICE_S)) == expected:
                 return True
         self.missed_answers += 1
         return False
 
     def run(self, max_samples: int | None = None) -> None:
         """Emulate until ``stop()`` (or ``max_samples``)."""
+        self.warm()
         self.plant.reset()
         start = time.monotonic()
         while not self.stop_event.is_set() and (max_samples is None or self.samples < max_samples):
@@ -249,9 +315,7 @@ class CanPlantEmulator:
                     remaining = next_time - time.monotonic()
                     if remaining <= 0:
                         break
-                    msg = self.bus.recv(remaining)
-                    if msg is not None:
-                        self._take(msg)
+                    self._recv(remaining)
             self._step_plant()
             if self.pace == "wallclock" and self.skip_late:
                 # a DAQ's clock does not wait: samples whose time passed while this process was
