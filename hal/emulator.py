@@ -28,7 +28,10 @@ What the beam saw of the controller's stalls, in the DAQ's own clock: the plant 
 during which no new answer was applied (the stacks held one voltage; 0 while every sample is
 answered before the next), the longest of the run (``held_longest``) and of each minute of
 plant time (``held_longest_per_minute``), counted while answers come (a controller that has
-stopped answering is not a stall: the DAQ falls back to bias on its own).
+stopped answering is not a stall: the DAQ falls back to bias on its own); and every hold of at
+least ``long_hold_s`` (5 ms) with its plant time, load and the samples of it this process did not
+send itself (``long_holds``: a hold made of the emulator's own lateness is the simulated DAQ's
+stall, not the controller's).
 """
 
 from __future__ import annotations
@@ -113,6 +116,12 @@ class CanPlantEmulator:
         self._held_run = 0                 # plant steps in a row without a new answer
         self.held_longest = 0
         self.held_longest_per_minute: list[int] = []
+        # every hold of at least ``long_hold_s``: (plant time at its end (s), load (N), samples held,
+        # of them not sent by this process itself (its own lateness))
+        self.long_hold_s = 0.005
+        self.long_holds: list[tuple[float, float, int, int]] = []
+        self._held_unsent = 0               # samples of the hold under way this process did not send
+        self._sending = True                # the step under way follows a sample sent
         self._samples_per_minute = max(1, int(round(60.0 / plant.config.period_s)))
         self.stop_event = threading.Event()
         self._thread: threading.Thread | None = None
@@ -272,11 +281,16 @@ class CanPlantEmulator:
         gone, which the fallback handles)."""
         if not self._answered:
             self._held_run += 1
+            if not self._sending:
+                self._held_unsent += 1
             return
         self._answered = False
         run, self._held_run = self._held_run, 0
+        unsent, self._held_unsent = self._held_unsent, 0
         if run == 0 or self.voltage_frames <= 1:
             return
+        if run * self.period_s >= self.long_hold_s:
+            self.long_holds.append((self.plant.time, self.plant.axial_load, run, unsent))
         minute = self.samples // self._samples_per_minute
         per = self.held_longest_per_minute
         while len(per) <= minute:
@@ -324,7 +338,9 @@ class CanPlantEmulator:
                 while (time.monotonic() - start > (self.samples + 1) * self.period_s
                        and not self.stop_event.is_set()
                        and (max_samples is None or self.samples < max_samples)):
+                    self._sending = False
                     self._step_plant()
+                    self._sending = True
                     self.skipped += 1
 
     def start(self, max_samples: int | None = None) -> CanPlantEmulator:

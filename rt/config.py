@@ -106,8 +106,9 @@ CONTROLLER_DEFAULTS: dict[str, Any] = {
     "telemetry": {"buffer_time_s": 20.0, "flush_interval_s": 0.25, "mode": "full", "decimation": 10,
                   "pre_trigger_s": 1.0, "post_trigger_s": 2.0},
     # the loop at SCHED_FIFO ``priority``; the process's other threads (telemetry, the control
-    # socket, the live view) at SCHED_FIFO ``helper_priority``, just below it (rt/realtime.py)
-    "realtime": {"priority": 80, "helper_priority": 79, "cpu": -1, "lock_memory": True},
+    # socket, the live view) at SCHED_FIFO ``helper_priority``, below it and above every task of
+    # the normal class and a PREEMPT_RT kernel's interrupt threads (50) (rt/realtime.py)
+    "realtime": {"priority": 80, "helper_priority": 60, "cpu": -1, "lock_memory": True},
 }
 
 # Keys renamed to carry their unit: a file that still sets an old one is refused, naming the new.

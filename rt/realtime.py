@@ -5,12 +5,10 @@ as granted or refused; with ``require`` a refusal is an error.
 The process's other threads (telemetry, the control socket, the live view) share the
 interpreter's lock with the loop: whichever of them holds it when a sample arrives holds the loop
 up until it lets go. Two things bound that wait. The other threads run SCHED_FIFO too, at
-``helper_priority`` (just below the loop's, above any other task), off the loop's CPU when it
-has one: a thread holding the lock can be kept off its CPU for tens of ms by any task of a higher
-class or priority (measured with the scheduler's trace: the loop waiting 18 ms for the lock held
-by the telemetry writer, of the normal class, itself waiting behind a daemon at nice -10; at
-SCHED_FIFO 20, behind the simulated DAQ's process at 70, stalls of about 1 ms every flush of the
-writer), and one waiting
+``helper_priority`` (below the loop's, above every task of the normal class), off the loop's CPU
+when it has one: a thread of the normal class holding the lock can be kept off its CPU for tens
+of ms by any busier task (measured with the scheduler's trace: the loop waiting 18 ms for the lock
+held by the telemetry writer, itself waiting behind a daemon at nice -10), and one waiting
 on the loop's CPU is given its turn by the kernel's fair server (up to 50 ms a second) however
 high the loop's priority. And the interpreter's switch interval is ``SWITCH_INTERVAL_S`` for the
 run (5 ms by default: a thread computing in Python would keep the lock that long once the loop

@@ -147,11 +147,14 @@ def run_plant(args: argparse.Namespace) -> int:
             "held_longest_samples": emulator.held_longest, "held_longest_ms": emulator.held_longest * ms,
             "held_longest_per_minute_samples": emulator.held_longest_per_minute,
             "held_longest_per_minute_ms": [n * ms for n in emulator.held_longest_per_minute],
+            "long_holds": [{"time_s": t, "load_N": f, "samples": n, "ms": n * ms, "not_sent_by_daq": u}
+                           for t, f, n, u in emulator.long_holds],
             "load_N": plant.axial_load, "deflection_mm": 1e3 * d}, indent=1) + "\n")
     return 0
 
 
-EMULATOR_PRIORITY = 70     # SCHED_FIFO of the emulator: below the controller's 80
+# SCHED_FIFO of the emulator: below the controller's loop (80), above its other threads (60)
+EMULATOR_PRIORITY = 70
 
 
 def _budget_settings(args: argparse.Namespace) -> tuple[float, float, bool, float, str | None, str]:

@@ -116,6 +116,34 @@ def test_the_daq_counts_the_samples_the_stacks_held_one_voltage():
     assert emulator.missed_answers == 3
     assert emulator.held_longest == 3 and emulator.held_longest_per_minute == [3], (
         f"longest {emulator.held_longest}, per minute {emulator.held_longest_per_minute}")
+    assert emulator.long_holds == [], "3 samples at 2500 Hz (1.2 ms) are under the 5 ms of a long hold"
+
+
+def test_the_daq_records_each_long_hold_with_its_time_load_and_its_own_share():
+    """A hold of at least long_hold_s is recorded with the plant time and load at its end and how
+    many of its samples the DAQ itself did not send (none here: the controller was silent)."""
+    from beamctl.hal.emulator import CanPlantEmulator
+
+    emulator_bus = can.Bus(interface="virtual", channel="emulator-long")
+    controller_bus = can.Bus(interface="virtual", channel="emulator-long")
+    emulator = CanPlantEmulator(emulator_bus, make_plant(), GEOMETRY, pace="lockstep", answer_timeout_s=0.01)
+    emulator.long_hold_s = 2.5 / 2500.0          # a hold of 3 samples is long here
+    try:
+        emulator.start(max_samples=8)
+        for k in range(8):
+            assert _next_strain_sequence(controller_bus) == k
+            if k not in (2, 3, 4):
+                _answer(controller_bus, k, 90.0)
+        emulator.join(timeout=5.0)
+    finally:
+        emulator.stop()
+        emulator_bus.shutdown()
+        controller_bus.shutdown()
+    assert len(emulator.long_holds) == 1, emulator.long_holds
+    time_s, load_n, held, unsent = emulator.long_holds[0]
+    # recorded at the step sample 5's answer ended it: the plant then at 6 periods
+    assert (held, unsent) == (3, 0) and time_s == pytest.approx(6 / 2500.0), emulator.long_holds
+    assert load_n == pytest.approx(emulator.plant.config.load.load_at(time_s))
 
 
 def _answer_then_fall_silent(channel: str, silence: float, ramp: float):
