@@ -79,11 +79,6 @@ from beamctl.rt.safety import Fault, Safety, State, TransitionError
 LEGACY_GAP_LIMIT, LEGACY_BUDGET_PERIODS = 5, 0.5
 # the moving spreads of the ride-through follow the signals with this time constant
 SPREAD_TIME_S = 0.1
-# the envelope of a signal's distance from its mean decays with this time constant: longer than
-# a swing of the loop's slowest well-damped mode through the mean (the robust check's worst rigs
-# ring at about 190 Hz, 5 ms), so that a stall within the recovery from another counts the
-# recovery's swing wherever in it it begins
-ENVELOPE_TIME_S = 0.01
 # a start allows the growth of this (the moving variances begin at the headroom over k times it)
 START_GROWTH = 10.0
 
@@ -267,7 +262,6 @@ class Controller:
         fv[e.X_SCALE_A] = fv[e.X_SCALE_B] = 1.0
         fv[e.P_PERIOD] = self.period_s
         fv[e.P_STAT_ALPHA] = 1.0 - np.exp(-self.period_s / SPREAD_TIME_S)
-        fv[e.P_ENVELOPE_DECAY] = np.exp(-self.period_s / ENVELOPE_TIME_S)
         fv[e.P_START_GROWTH] = START_GROWTH
         self._gap_cap = np.inf          # the DAQ's own silence (``cap_gap_limit``)
         self._bias = np.full(6, act.bias_voltage_v)
@@ -386,8 +380,6 @@ class Controller:
         fv[e.P_FIRST], fv[e.P_LAST] = p.first_n, p.last_n
         fv[e.P_K_SIGMA] = p.limits.confidence_sigma
         fv[e.P_C1:e.P_C1 + 2] = p.mode1_strain
-        with np.errstate(divide="ignore"):
-            fv[e.P_Q_FLOOR:e.P_Q_FLOOR + 2] = e.SPREAD_FLOOR_STRAIN / np.asarray(p.mode1_strain)
         fv[e.P_GAP_CAP] = min(p.limits.gap_cap, self._gap_cap)
         fv[e.P_LATE_CAP] = p.limits.late_cap
         self._mats = mats

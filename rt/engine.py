@@ -142,12 +142,7 @@ X_QM, X_QV, X_YM, X_VM, X_VV, X_LIMIT, X_ALLOWED = 51, 53, 55, 59, 65, 71, 73
 # unit q_1 at the gauges (the larger of a plane's two), the caps on the gap and late-answer limits
 # (the DAQ's silence, the configuration's), the period, the growth allowed at a start
 P_STAT_ALPHA, P_K_SIGMA, P_C1, P_GAP_CAP, P_LATE_CAP, P_PERIOD, P_START_GROWTH = 75, 76, 77, 79, 80, 81, 82
-# the envelope of the deviations from the means (q_1 in planes y, z; the six stacks) and its decay
-# per sample
-X_QE, X_VE, P_ENVELOPE_DECAY = 83, 85, 91
-# the least spread of q_1 a deviation is clipped at, per plane (SPREAD_FLOOR_STRAIN at the gauges)
-P_Q_FLOOR = 92
-N_FV = 94
+N_FV = 83
 
 # Scratch after x_c in ``buf``: a plane's gathered signals (6 + n), a product's result (n + 4).
 # ``V_SPLIT`` 1: the compensator's two bending planes do not couple and their
@@ -172,11 +167,6 @@ def _scratch(n):
 R_STATE = -1        # not allowed in this state
 R_NOT_AT_BIAS = -2  # the voltages have not ramped to bias yet
 
-# The spreads a deviation is clipped at are taken as at least these (a start with no headroom sets
-# a spread of 0): far below any measured (0.2 ue of gauge noise, 0.14 to 0.24 V at the stacks), at
-# the resolution of the strain frames (0.12 ue) and of a 16-bit output over 150 V (2.3 mV).
-SPREAD_FLOOR_STRAIN = 1e-8
-SPREAD_FLOOR_V = 0.01
 GAP_COUNT_CAP = 4.0e18  # the longest gap counted (a count beyond int64 would overflow)
 SPAN_ROUNDING = 1e-12   # relative: far above the few ulps of the coefficients, far below any real excess
 
@@ -245,18 +235,11 @@ def gap_allowed(growth, o, grid, g0, n, allowed_q, allowed_v):
 
 def _allowed(buf, fv):
     """The growth the headroom allows, deflection and voltage (gains/ridethrough.py): the
-    headroom over k times the spread, from the moving means and variances; a stall starts where
-    the beam and the stacks are, so a signal now further from its mean than k spreads (the
-    recovery from a stall) counts with that distance instead: the envelope of the distance, which
-    a recovery that swings through the mean does not reset (``_envelope``)."""
+    headroom over k times the spread, from the moving means and variances."""
     k = fv[P_K_SIGMA]
     sq = 0.0
     for p in range(2):
-        s = math.sqrt(fv[X_QV + p])
-        d = fv[X_QE + p] / k
-        if d > s:
-            s = d
-        s *= fv[P_C1 + p]
+        s = math.sqrt(fv[X_QV + p]) * fv[P_C1 + p]
         if s > sq:
             sq = s
     ym = 0.0
@@ -268,9 +251,6 @@ def _allowed(buf, fv):
     hv = math.inf
     for j in range(6):
         s = math.sqrt(fv[X_VV + j])
-        d = fv[X_VE + j] / k
-        if d > s:
-            s = d
         if s > sv:
             sv = s
         m = fv[X_VM + j]
@@ -340,55 +320,21 @@ def _stats_start(buf, iv, fv, mats):
             h = buf[I_V + j] - fv[P_V_MIN]
         s = h / k if h > 0.0 else 0.0
         fv[X_VV + j] = s * s
-    for j in range(2):
-        fv[X_QE + j] = 0.0
-    for j in range(6):
-        fv[X_VE + j] = 0.0
     _live_limit(buf, iv, fv, mats)
-
-
-def _envelope(buf, fv):
-    """The envelope of each signal's distance from its mean: the distance now, or the envelope
-    before decayed by P_ENVELOPE_DECAY, the larger (NaN is not taken)."""
-    decay = fv[P_ENVELOPE_DECAY]
-    for p in range(2):
-        d = abs(buf[I_Q + p] - fv[X_QM + p])
-        e = fv[X_QE + p] * decay
-        fv[X_QE + p] = d if d > e else e
-    for j in range(6):
-        d = abs(buf[I_V + j] - fv[X_VM + j])
-        e = fv[X_VE + j] * decay
-        fv[X_VE + j] = d if d > e else e
-
-
-def _clipped(d, var, k, floor):
-    """``d`` within k standard deviations (of variance ``var``, taken as at least ``floor``)."""
-    s = math.sqrt(var)
-    c = k * (s if s > floor else floor)
-    if d > c:
-        return c
-    if d < -c:
-        return -c
-    return d
 
 
 def _stats_update(buf, iv, fv, mats):
     """One controlled sample into the moving statistics (exponential, coefficient
-    P_STAT_ALPHA), then the live limits. A deviation beyond k spreads enters as k spreads: the
-    recovery from a stall (which the live limit counts by itself, ``_allowed``) is not the
-    stationary loop, whose growth the table stores; a spread that really grew is followed still,
-    at a bounded pace."""
+    P_STAT_ALPHA), then the live limits."""
     a = fv[P_STAT_ALPHA]
-    k = fv[P_K_SIGMA]
-    _envelope(buf, fv)
     for p in range(2):
-        d = _clipped(buf[I_Q + p] - fv[X_QM + p], fv[X_QV + p], k, fv[P_Q_FLOOR + p])
+        d = buf[I_Q + p] - fv[X_QM + p]
         fv[X_QM + p] += a * d
         fv[X_QV + p] = (1.0 - a) * (fv[X_QV + p] + a * d * d)
     for j in range(4):
         fv[X_YM + j] += a * (buf[I_Y + j] - fv[X_YM + j])
     for j in range(6):
-        d = _clipped(buf[I_V + j] - fv[X_VM + j], fv[X_VV + j], k, SPREAD_FLOOR_V)
+        d = buf[I_V + j] - fv[X_VM + j]
         fv[X_VM + j] += a * d
         fv[X_VV + j] = (1.0 - a) * (fv[X_VV + j] + a * d * d)
     _live_limit(buf, iv, fv, mats)
@@ -1001,8 +947,6 @@ gap_allowed = _jit(gap_allowed)
 _allowed = _jit(_allowed)
 _live_limit = _jit(_live_limit)
 _stats_start = _jit(_stats_start)
-_clipped = _jit(_clipped)
-_envelope = _jit(_envelope)
 _stats_update = _jit(_stats_update)
 _limits = _jit(_limits)
 _settle = _jit(_settle)

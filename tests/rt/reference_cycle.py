@@ -48,13 +48,9 @@ voltages both, capped by the configuration: spread_q = the larger over the plane
 times mode 1's strain at the gauges, headroom_q = strain limit - the largest |mean strain|;
 spread_v = the largest sqrt(var V_i), headroom_v = the least of V_max - mean V_i, mean V_i - V_min.
 The means and variances are exponential (coefficient 1 - exp(-T / 0.1 s)) over the controlled
-samples, a distance from the mean beyond k standard deviations entering as k of them (a stall's
-recovery is not the stationary loop); where a signal's envelope of its distance from the mean
-(decaying as exp(-T / 0.01 s)) exceeds k spreads, envelope / k stands for the spread (a stall
-starts where the beam and the stacks are); a start sets the means where the signals are and the
-variances so that a growth of 10 is allowed. The late-answer limit is the live limit capped by
-the configuration; the answer budget the table's per grid point (the lesser of a grid interval's
-ends), tightened by the configuration.
+samples; a start sets the means where the signals are and the variances so that a growth of 10 is
+allowed. The late-answer limit is the live limit capped by the configuration; the answer budget
+the table's per grid point (the lesser of a grid interval's ends), tightened by the configuration.
 
 Faults latch: the first wins until an operator re-arms, the state becomes FAULT and the
 voltages ramp linearly from where they were to bias in ramp_time x rate samples, then hold it
@@ -70,8 +66,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from beamctl.rt.config import ControllerConfig
-from beamctl.rt.controller import ENVELOPE_TIME_S, SPREAD_TIME_S, START_GROWTH, ride_through_limits
-from beamctl.rt.engine import RECORD_COLUMNS, SPREAD_FLOOR_STRAIN, SPREAD_FLOOR_V
+from beamctl.rt.controller import SPREAD_TIME_S, START_GROWTH, ride_through_limits
+from beamctl.rt.engine import RECORD_COLUMNS
 from beamctl.rt.safety import Fault, State, TransitionError
 
 # the record's layout is the telemetry's format (rt/engine.py defines it); the values in it are
@@ -184,7 +180,6 @@ class ReferenceController:
         self.sigma = limits.confidence_sigma
         self.gap_cap, self.late_cap = limits.gap_cap, limits.late_cap
         self.stat_alpha = 1.0 - math.exp(-self.period_s / SPREAD_TIME_S)
-        self.envelope_decay = math.exp(-self.period_s / ENVELOPE_TIME_S)
         c0_phi = np.linalg.inv(self.c0_phi_inv)
         self.mode1_strain = [float(np.abs(c0_phi[[0, 2], 0]).max()), float(np.abs(c0_phi[[1, 3], 1]).max())]
 
@@ -231,7 +226,6 @@ class ReferenceController:
         self.q_mean, self.q_var = [0.0, 0.0], [0.0, 0.0]
         self.y_mean = [0.0] * 4
         self.v_mean, self.v_var = [0.0] * 6, [0.0] * 6
-        self.q_envelope, self.v_envelope = [0.0] * 2, [0.0] * 6
         self.live_limit = 0.0
 
     # the ride-through limits now
@@ -265,34 +259,19 @@ class ReferenceController:
             self.v_mean[j] = float(v)
             h = min(self.v_max - v, v - self.v_min)
             self.v_var[j] = (h / k) ** 2 if h > 0.0 else 0.0
-        self.q_envelope, self.v_envelope = [0.0] * 2, [0.0] * 6
         self._update_limit()
 
     def _stats_update(self) -> None:
-        """One controlled sample into the envelopes of the distances from the means (the distance
-        now or the envelope decayed, the larger), then into the exponential means and variances
-        with the distance clipped at k standard deviations (a standard deviation taken as at least
-        0.01 ue at the gauges, 0.01 V), then the limit."""
-        a, k, decay = self.stat_alpha, self.sigma, self.envelope_decay
+        """One controlled sample into the exponential means and variances, then the limit."""
+        a = self.stat_alpha
         for p in range(2):
-            self.q_envelope[p] = max(abs(float(self.q[p]) - self.q_mean[p]), self.q_envelope[p] * decay)
-        for j in range(6):
-            distance = abs(float(self.voltages[j]) - self.v_mean[j])
-            self.v_envelope[j] = max(distance, self.v_envelope[j] * decay)
-
-        def clipped(d, var, floor):
-            c = k * max(math.sqrt(var), floor)
-            return min(max(d, -c), c)
-
-        for p in range(2):
-            floor = SPREAD_FLOOR_STRAIN / self.mode1_strain[p]
-            d = clipped(float(self.q[p]) - self.q_mean[p], self.q_var[p], floor)
+            d = float(self.q[p]) - self.q_mean[p]
             self.q_mean[p] += a * d
             self.q_var[p] = (1.0 - a) * (self.q_var[p] + a * d * d)
         for j in range(4):
             self.y_mean[j] += a * (float(self.strains[j]) - self.y_mean[j])
         for j in range(6):
-            d = clipped(float(self.voltages[j]) - self.v_mean[j], self.v_var[j], SPREAD_FLOOR_V)
+            d = float(self.voltages[j]) - self.v_mean[j]
             self.v_mean[j] += a * d
             self.v_var[j] = (1.0 - a) * (self.v_var[j] + a * d * d)
         self._update_limit()
@@ -300,12 +279,8 @@ class ReferenceController:
     def _update_limit(self) -> None:
         """The live limit from the growth the headroom allows, at the filtered load."""
         r = self.record
-        # a stall starts where the beam and the stacks are: a distance from the mean beyond k
-        # spreads (its envelope: a recovery's swing) counts instead of the spread
-        spread_q = max(max(math.sqrt(self.q_var[p]), self.q_envelope[p] / self.sigma) * self.mode1_strain[p]
-                       for p in range(2))
-        spread_v = max(max(math.sqrt(v), e / self.sigma) for v, e in zip(self.v_var, self.v_envelope,
-                                                                          strict=True))
+        spread_q = max(math.sqrt(self.q_var[p]) * self.mode1_strain[p] for p in range(2))
+        spread_v = max(math.sqrt(v) for v in self.v_var)
         headroom_q = self.strain_limit - max(abs(y) for y in self.y_mean)
         headroom_v = min(min(self.v_max - m, m - self.v_min) for m in self.v_mean)
         allowed_q = headroom_q / (self.sigma * spread_q) if spread_q > 0.0 else math.inf
