@@ -69,6 +69,8 @@ def _helpers(cpu: int, priority: int) -> str:
             os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
             if cpu >= 0:
                 os.sched_setaffinity(tid, others)
+        except ProcessLookupError:      # ended meanwhile
+            continue
         except OSError as exc:
             refusals.add(exc.strerror)
             _restore_thread(tid, before)

@@ -93,26 +93,34 @@ def test_only_valid_new_voltage_frames_move_the_stacks():
     assert (emulator.rejected["behind"], emulator.rejected["repeated"]) == (1, 2), emulator.rejected
 
 
-def test_the_daq_counts_the_samples_the_stacks_held_one_voltage():
-    """Samples 2 to 4 go unanswered: the plant steps three times on sample 1's voltages, and the
-    DAQ's record of stalls (the longest, per minute of plant time) says 3 once sample 5's answer
-    ends the stall; samples answered in turn add nothing."""
+def _leave_unanswered(channel: str, unanswered=(2, 3, 4), long_hold_s: float | None = None):
+    """A lockstep emulator's 8 samples, answered at 90 V but for ``unanswered``: the emulator."""
     from beamctl.hal.emulator import CanPlantEmulator
 
-    emulator_bus = can.Bus(interface="virtual", channel="emulator-held")
-    controller_bus = can.Bus(interface="virtual", channel="emulator-held")
-    emulator = CanPlantEmulator(emulator_bus, make_plant(), GEOMETRY, pace="lockstep", answer_timeout_s=0.1)
+    emulator_bus = can.Bus(interface="virtual", channel=channel)
+    controller_bus = can.Bus(interface="virtual", channel=channel)
+    emulator = CanPlantEmulator(emulator_bus, make_plant(), GEOMETRY, pace="lockstep", answer_timeout_s=0.05)
+    if long_hold_s is not None:
+        emulator.long_hold_s = long_hold_s
     try:
         emulator.start(max_samples=8)
         for k in range(8):
             assert _next_strain_sequence(controller_bus) == k
-            if k not in (2, 3, 4):
+            if k not in unanswered:
                 _answer(controller_bus, k, 90.0)
         emulator.join(timeout=5.0)
     finally:
         emulator.stop()
         emulator_bus.shutdown()
         controller_bus.shutdown()
+    return emulator
+
+
+def test_the_daq_counts_the_samples_the_stacks_held_one_voltage():
+    """Samples 2 to 4 go unanswered: the plant steps three times on sample 1's voltages, and the
+    DAQ's record of stalls (the longest, per minute of plant time) says 3 once sample 5's answer
+    ends the stall; samples answered in turn add nothing."""
+    emulator = _leave_unanswered("emulator-held")
     assert emulator.missed_answers == 3
     assert emulator.held_longest == 3 and emulator.held_longest_per_minute == [3], (
         f"longest {emulator.held_longest}, per minute {emulator.held_longest_per_minute}")
@@ -122,23 +130,7 @@ def test_the_daq_counts_the_samples_the_stacks_held_one_voltage():
 def test_the_daq_records_each_long_hold_with_its_time_load_and_its_own_share():
     """A hold of at least long_hold_s is recorded with the plant time and load at its end and how
     many of its samples the DAQ itself did not send (none here: the controller was silent)."""
-    from beamctl.hal.emulator import CanPlantEmulator
-
-    emulator_bus = can.Bus(interface="virtual", channel="emulator-long")
-    controller_bus = can.Bus(interface="virtual", channel="emulator-long")
-    emulator = CanPlantEmulator(emulator_bus, make_plant(), GEOMETRY, pace="lockstep", answer_timeout_s=0.01)
-    emulator.long_hold_s = 2.5 / 2500.0          # a hold of 3 samples is long here
-    try:
-        emulator.start(max_samples=8)
-        for k in range(8):
-            assert _next_strain_sequence(controller_bus) == k
-            if k not in (2, 3, 4):
-                _answer(controller_bus, k, 90.0)
-        emulator.join(timeout=5.0)
-    finally:
-        emulator.stop()
-        emulator_bus.shutdown()
-        controller_bus.shutdown()
+    emulator = _leave_unanswered("emulator-long", long_hold_s=2.5 / 2500.0)   # 3 samples are long here
     assert len(emulator.long_holds) == 1, emulator.long_holds
     time_s, load_n, held, unsent = emulator.long_holds[0]
     # recorded at the step sample 5's answer ended it: the plant then at 6 periods
