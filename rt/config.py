@@ -106,10 +106,14 @@ CONTROLLER_DEFAULTS: dict[str, Any] = {
     "telemetry": {"buffer_time_s": 20.0, "flush_interval_s": 0.25, "mode": "full", "decimation": 10,
                   "pre_trigger_s": 1.0, "post_trigger_s": 2.0},
     # the loop at SCHED_FIFO ``priority``; the process's other threads (telemetry, the control
-    # socket, the live view) at SCHED_FIFO ``helper_priority``, below it and above every task of
-    # the normal class and a PREEMPT_RT kernel's interrupt threads (50) (rt/realtime.py)
-    "realtime": {"priority": 80, "helper_priority": 60, "cpu": -1, "lock_memory": True},
+    # socket, the live view) at SCHED_FIFO ``helper_priority`` (null: HELPER_PRIORITY, or one below
+    # the loop's where that is lower), below the loop's (rt/realtime.py)
+    "realtime": {"priority": 80, "helper_priority": None, "cpu": -1, "lock_memory": True},
 }
+
+# The other threads' SCHED_FIFO priority by default: above every task of the normal class and a
+# PREEMPT_RT kernel's interrupt threads (50), below the loop's.
+HELPER_PRIORITY = 60
 
 # Keys renamed to carry their unit: a file that still sets an old one is refused, naming the new.
 RENAMED_KEYS = {
@@ -152,7 +156,9 @@ _SCHEMA = {
                   "mode": choice(*RECORDING_MODES), "decimation": integer(low=1),
                   "pre_trigger_s": number("s", low=0.0, high=MAX_PRE_TRIGGER_S),
                   "post_trigger_s": nonnegative("s")},
-    "realtime": {"priority": integer(low=2, high=99), "helper_priority": integer(low=1, high=98),
+    "realtime": {"priority": integer(low=2, high=99),
+                 "helper_priority": optional(integer(low=1, high=98), f"{HELPER_PRIORITY}, or one below "
+                                             f"realtime.priority where that is lower"),
                  "cpu": integer(low=-1), "lock_memory": boolean()},
 }
 
@@ -225,7 +231,9 @@ def controller_config(overrides: dict[str, Any] | None = None, source: str = "",
     s = v["safety"]
     if not s["load_range_n"][0] < s["load_range_n"][1]:
         raise ConfigError(f"{prefix}safety.load_range_n", list(s["load_range_n"]), "low < high", source)
-    r = v["realtime"]
+    r = dict(v["realtime"])
+    if r["helper_priority"] is None:
+        r["helper_priority"] = min(HELPER_PRIORITY, r["priority"] - 1)
     if not r["helper_priority"] < r["priority"]:
         raise ConfigError(f"{prefix}realtime.helper_priority", r["helper_priority"],
                           f"below realtime.priority = {r['priority']} (the process's other threads "
@@ -245,7 +253,7 @@ def controller_config(overrides: dict[str, Any] | None = None, source: str = "",
                             recording=Recording(mode=t["mode"], decimation=t["decimation"],
                                                 pre_trigger_s=t["pre_trigger_s"],
                                                 post_trigger_s=t["post_trigger_s"])),
-        realtime=Realtime(**v["realtime"]))
+        realtime=Realtime(**r))
 
 
 def settings_by_key(config: ControllerConfig) -> dict[str, Any]:

@@ -73,7 +73,10 @@ def test_the_other_threads_run_at_the_helper_priority_off_the_loop_s_cpu_and_are
 
 
 def test_the_helpers_priority_must_be_below_the_loop_s():
+    """Given, it must be below the loop's; not given, 60, or one below a loop set lower."""
     from beamctl.config.schema import ConfigError
 
     with pytest.raises(ConfigError, match="realtime.helper_priority"):
         controller_config({"realtime": {"priority": 50, "helper_priority": 50}})
+    assert controller_config().realtime.helper_priority == 60
+    assert controller_config({"realtime": {"priority": 50}}).realtime.helper_priority == 49
