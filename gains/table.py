@@ -48,7 +48,14 @@ from beamctl.config.schema import ConfigError, read_yaml
 from beamctl.gains.compensator import MATRICES, Compensator
 from beamctl.gains.discrete import LoopCheck
 from beamctl.gains.lqr import N_INPUTS, N_STATES, Weights
-from beamctl.gains.ridethrough import BRIDGES, DELAY_MARGIN, OUTPUTS, RideThrough, answer_budget
+from beamctl.gains.ridethrough import (
+    BRIDGES,
+    DELAY_MARGIN,
+    LEGACY_BRIDGE,
+    OUTPUTS,
+    RideThrough,
+    answer_budget,
+)
 from beamctl.models.iochain import IOChain, io_chain
 from beamctl.models.params import ModelParameters, parameters_from_dict
 
@@ -617,6 +624,11 @@ def _ride_through(data: dict, source: str, n_loads: int, design_delay: float,
     if not isinstance(rigs, list) or not rigs or not all(isinstance(r, str) and r for r in rigs):
         raise GainTableError("ride_through.rigs", _short(rigs), "a list naming the rigs analysed", source)
     growth = section["growth"]
+    if isinstance(growth, dict) and sorted(growth) == [LEGACY_BRIDGE]:
+        # a table analysed before the catch-up (gains/ridethrough.py, "Bridges"): the hold's
+        # growth, within 7 % of the catch-up's for the deflection on the shipped table, larger
+        # for the voltages
+        growth = {BRIDGES[0]: growth[LEGACY_BRIDGE]}
     if not isinstance(growth, dict) or sorted(growth) != sorted(BRIDGES):
         raise GainTableError("ride_through.growth", _short(growth), f"a mapping of the bridges {BRIDGES}",
                              source)

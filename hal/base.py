@@ -45,7 +45,7 @@ class Sample:
 
     ``missed`` is the number of samples of the source skipped between the previous sample
     delivered and this one: sampled by the source but never delivered (lost on the way, or
-    dropped as invalid), which the controller bridges by holding its estimate. It is 0
+    dropped as invalid), which the controller bridges by catching its compensator up. It is 0
     for samples in order and for the first sample after ``open``; the ``sim`` backend never skips
     one; the ``can`` backend counts the counter values a forward jump of the DAQ_Strains
     ``sequence`` skipped (the jump minus one), and 0 after a resynchronisation to a new stream,

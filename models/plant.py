@@ -63,6 +63,7 @@ from beamctl.config.schema import (
     read_yaml,
     validate,
 )
+from beamctl.models import plantstep as ps
 from beamctl.models.analysis import buckling_mode
 from beamctl.models.fe import (
     PHI_Y,
@@ -325,7 +326,6 @@ class Plant:
         self._inputs = np.zeros(n_inputs)
         self._history = np.zeros((whole + 1, N_FORCES))
         self._delayed = whole > 0 or self._fractional
-        self._head = 0
         # feedthrough y = C x + D u: u is the input held just before the sampling instant,
         # i.e. the previous step's (u_k-1-whole, Fx_k-1); zero for this beam, kept general
         feedthrough = np.zeros((N_STRAINS, n_inputs))
@@ -342,13 +342,18 @@ class Plant:
         self._stop_rows = np.vstack([basis[[dof(k, PLANE_DOFS[p][0]) for k in quarter]] for p in ("y", "z")])
         self._stop_out = np.zeros(self._stop_rows.shape[0])
         self.end_stop_m = END_STOP_FRACTION * model.params.beam.length
-        self._stop_check = self.end_stop_m / math.sqrt(2.0)
-        self._velocity = slice(self._q.stop, self._q.stop + n)
         self.on_stops_since: float | None = None     # the time the beam first came to rest on its stops
 
+        # the compiled step's arrays (models/plantstep.py)
         self._state = np.zeros(n_states)
-        self._next = np.zeros(n_states)
-        self._forced = np.zeros(n_states)
+        self._work = np.zeros(2 * n_states)
+        self._ik = np.zeros(ps.N_IK, dtype=np.int64)
+        self._ik[ps.K_FRACTIONAL] = 1 if self._fractional else 0
+        self._ik[ps.K_DELAYED] = 1 if self._delayed else 0
+        self._ik[ps.K_Q], self._ik[ps.K_NQ] = self._q.start, n
+        self._pf = np.zeros(ps.N_PF)
+        self._pf[ps.P_STOP_CHECK] = self.end_stop_m / math.sqrt(2.0)
+        self._pf[ps.P_END_STOP] = self.end_stop_m
         self._fingerprint = self._digest()
         self._bin = None
         self._ad = self._bd = None
@@ -486,58 +491,38 @@ class Plant:
             aa = self._aa
             self._state[aa] = self._settle @ self._state[:aa.start] + self._settle_load * self.axial_load
         self._history[:] = 0.0
-        self._head = 0
+        self._ik[ps.K_HEAD] = 0
+        self._ik[ps.K_RESTED] = 0
         self._inputs[:] = 0.0
         self._inputs[-1] = self.axial_load
         self._use_load(self.axial_load)
 
     def step(self, forces_n: np.ndarray) -> None:
-        """Apply the actuator forces (N) commanded now for one sample period and advance."""
-        inputs = self._inputs
-        if self._delayed:
-            self._delay(forces_n)
-        else:
-            inputs[:4] = forces_n
-        inputs[-1] = self.axial_load
-        np.dot(self._ad, self._state, out=self._next)
-        np.dot(self._bd, inputs, out=self._forced)
-        self._next += self._forced
-        self._state, self._next = self._next, self._state
-        np.dot(self._stop_rows, self._state[self._q], out=self._stop_out)
-        # a component past the stop's reach / sqrt(2): the radius may be past it (checked there)
-        if self._stop_out.max() > self._stop_check or -self._stop_out.min() > self._stop_check:
-            self._rest_on_stops()
+        """Apply the actuator forces (N) commanded now for one sample period and advance (the
+        arithmetic: models/plantstep.py ``step``, the one the offline loop runs too)."""
+        self._pf[ps.P_LOAD] = self.axial_load
+        ps.step(self._state, self._work, self._ad, self._bd, self._inputs, self._history, self._stop_rows,
+                self._stop_out, forces_n, self._ik, self._pf)
+        if self._ik[ps.K_RESTED] and self.on_stops_since is None:
+            self.on_stops_since = self.time
         self.time += self.period_s
         self.axial_load = self.config.load.load_at(self.time)
         self._use_load(self.axial_load)
 
     def _rest_on_stops(self) -> None:
-        """The beam has reached its end stops: it comes to rest against them (its shape scaled
-        back to the stops, its velocity gone), as a rig's catch holds a lost beam. Without them
-        a beam past its critical load with nobody holding it grows without bound."""
+        """A static shape past the stops (placed by ``reset``): at rest against them, as ``step``
+        brings a beam that reaches them (models/plantstep.py)."""
         n = len(self._stop_out) // 2
         reach = float(np.hypot(self._stop_out[:n], self._stop_out[n:]).max())
         if not reach > self.end_stop_m:
             return
         self._state[self._q] *= self.end_stop_m / reach
-        self._state[self._velocity] = 0.0
-        if self.on_stops_since is None:
-            self.on_stops_since = self.time
+        self.on_stops_since = self.time
 
     def follow_load(self, programme: LoadRamp) -> None:
         """From now on follow another load programme (on the plant's own clock): an operator
         moving the load by hand."""
         self.config = replace(self.config, load=programme)
-
-    def _delay(self, forces_n: np.ndarray) -> None:
-        """Inputs <- u_k-whole (and u_k-whole-1); the ring's oldest entry then takes u_k."""
-        history, head = self._history, self._head
-        length = len(history)
-        self._inputs[:4] = history[(head + 1) % length] if length > 1 else forces_n
-        if self._fractional:
-            self._inputs[4:8] = history[head]
-        history[head] = forces_n
-        self._head = (head + 1) % length
 
     def _refill_noise(self) -> None:
         """The next block of measurement noise (strains, load cell) from the seeded stream."""
@@ -546,23 +531,18 @@ class Plant:
         self._noise_block[:, 4] *= self.config.noise.load
         self._noise_index = 0
 
-    def _noise(self) -> np.ndarray:
-        if self._noise_index >= len(self._noise_block):
-            self._refill_noise()
-        row = self._noise_block[self._noise_index]
-        self._noise_index += 1
-        return row
-
     def measure(self) -> tuple[np.ndarray, float]:
         """(strains [eps_y1, eps_z1, eps_y2, eps_z2] behind the anti-aliasing filter, load-cell
         reading in N) of the current state, noise included. The strain array is reused by the
         next call."""
-        noise = self._noise()
-        np.dot(self._c, self._state[self._measured], out=self._strain_out)
+        if self._noise_index >= len(self._noise_block):
+            self._refill_noise()
+        row = self._noise_index
+        self._noise_index += 1
+        ps.measure(self._state, self._c, self._measured.start, self._noise_block, row, self._strain_out)
         if self._feedthrough is not None:
             self._strain_out += self._feedthrough @ self._inputs
-        self._strain_out += noise[:4]
-        return self._strain_out, self.axial_load + float(noise[4])
+        return self._strain_out, self.axial_load + float(self._noise_block[row, 4])
 
     # -- observation for experiments and tests ------------------------------------------------
     def elastic_deflection(self) -> np.ndarray:

@@ -4,7 +4,7 @@ ran the paper's controller (section 4), by the compiled engine (rt/engine.py).
 
 Per sample, in this order (the engine's ``cycle``):
 1. input checks (strain and load-cell ranges), and the stall the stacks held a stale voltage
-   through, against the live ride-through limit (a gap is bridged by holding the estimate);
+   through, against the live ride-through limit (a gap is bridged by catching the compensator up on it);
 2. q = (C0 Phi)^-1 y (eq. 30), for telemetry and the operator (the law reads y itself);
 3. integral action xi += T H y; with anti-windup, an increment whose effect -Ki dxi would push
    a saturated support further along its demanded force is skipped;
@@ -87,7 +87,7 @@ START_GROWTH = 10.0
 class RideThroughLimits:
     """What the engine takes of a table's ride-through (``ride_through_limits``): per grid point
     the answer budget in periods, the loads the growth was analysed at and per interval between
-    them the growth curves [interval, bridge (hold), output (deflection, voltage), gap], the gap
+    them the growth curves [interval, bridge (catch_up), output (deflection, voltage), gap], the gap
     grid, k of the k-sigma bound, and the caps on the gap and late-answer limits (samples)."""
 
     budgets: np.ndarray
@@ -263,6 +263,7 @@ class Controller:
         fv[e.P_PERIOD] = self.period_s
         fv[e.P_STAT_ALPHA] = 1.0 - np.exp(-self.period_s / SPREAD_TIME_S)
         fv[e.P_START_GROWTH] = START_GROWTH
+        fv[e.P_CATCH_UP] = e.CATCH_UP_SAMPLES
         self._gap_cap = np.inf          # the DAQ's own silence (``cap_gap_limit``)
         self._bias = np.full(6, act.bias_voltage_v)
         self.safety = Safety(self, iv, fv, tuple(s.load_range_n), s.ramp_time_s)

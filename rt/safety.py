@@ -226,7 +226,7 @@ class Safety:
 
     @property
     def bridged_samples(self) -> int:
-        """Samples bridged (the estimate held over them) since the controller was built."""
+        """Samples bridged (the compensator caught up on them) since the controller was built."""
         return int(self.iv[e.V_BRIDGED])
 
     @property

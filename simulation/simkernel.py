@@ -5,9 +5,9 @@ as the rig: per sample the sim backend's measurement of the plant, the engine's 
 (rt/engine.py ``cycle``, the one compiled implementation the service runs too: checks, schedule,
 law, allocation and clamp, every fault decision), the stacks' forces on the rig and the plant's
 step, and the experiment's monitor. ``run_cycles`` runs these cycles in one compiled loop that
-calls the engine's ``cycle`` itself; only the plant's and the monitor's arithmetic is written
-here (the plant's as models/plant.py's ``measure`` and ``step``, tests/simulation/test_simkernel.py
-compares the two runs).
+calls the engine's ``cycle`` and the plant's compiled ``measure`` and ``step``
+(models/plantstep.py, the ones models/plant.py calls: the end stops included) itself; only the
+monitor's arithmetic is written here (tests/simulation/test_simkernel.py compares the two runs).
 
 It hands over to the loop after any cycle that leaves the controller neither RUNNING nor ARMED
 (a fault or a stop: the loop then runs the ramp to bias), and before any cycle the loop must run
@@ -16,9 +16,7 @@ telemetry runs in the loop). It returns for what needs Python: a new discretisat
 (a new load cell), a new block of measurement noise, the monitor's progress and end check.
 
 Not kept in kernel cycles: the loop's per-stage timing (a simulated sample has none worth
-measuring) and the plant's end stops (5 % of the beam's length, 20 mm for the paper's: the
-monitor ends a run at its deflection limit, and for the paper's beam the supervisor faults on the
-strain limit, long before; the loop's own cycles have them).
+measuring).
 ``Accelerator`` is the ``ControlLoop`` hook: offered each cycle, it runs as many
 kernel cycles as it can and returns how many. Numba keys a disk cache on this file alone; the
 kernel's cache is dropped when the engine it calls has changed (``kernel``).
@@ -31,6 +29,7 @@ import math
 import numpy as np
 
 from beamctl.hal.sim import SimBackend
+from beamctl.models import plantstep
 from beamctl.rt import engine as e
 from beamctl.rt.safety import Fault, State
 
@@ -46,36 +45,33 @@ MONITOR_FULL = 5    # the monitor's arrays are full
 F_TIME, F_LOAD = range(2)
 # float constants
 (F_PERIOD, F_RAMP_START, F_RAMP_END, F_RAMP_RATE, F_RAMP_HOLD, F_CELL, F_LIMIT, F_END_TIME) = range(2, 10)
-N_F = 10
+F_ON_STOPS = 10     # the time the beam first came to rest on its end stops (NaN: not yet; in and out)
+N_F = 11
 # integer scalars (in and out)
-(K_NOISE, K_HEAD, K_SEQUENCE, K_BIN, K_COUNTER, K_ENTRIES, K_CYCLES) = range(7)
+(K_NOISE, K_SEQUENCE, K_BIN, K_COUNTER, K_ENTRIES, K_CYCLES) = range(6)
 # integer constants
-(K_FRACTIONAL, K_DELAYED, K_MONITOR, K_DECIMATE, K_CALLBACK_EVERY) = range(7, 12)
-N_K = 12
+(K_MONITOR, K_DECIMATE, K_CALLBACK_EVERY) = range(6, 9)
+N_K = 9
 
 
-def _run_cycles(f, k, budget, state, nxt, ad, bd, c_meas, meas_lo, inputs, history, noise,
-                buf, iv, fv, mats, rig_force, rig_bias, vy, vz, lateral, q_lo, mon, scratch):
+def _run_cycles(f, k, budget, state, work, ad, bd, c_meas, meas_lo, inputs, history, noise, stop_rows,
+                stop_out, ik, pf, buf, iv, fv, mats, rig_force, rig_bias, vy, vz, lateral, q_lo, mon,
+                scratch):
     """Run up to ``budget`` cycles; return (why it stopped, cycles run). ``f`` and ``k`` carry
     the plant's and the monitor's scalars in and out; ``buf``, ``iv``, ``fv``, ``mats`` are the
     controller's engine arrays; the other arrays the plant's and the monitor's own, changed in
     place."""
-    n_states = state.shape[0]
     rig_f = scratch[0:4]
-    forced = scratch[4:4 + n_states]
-    n_inputs = inputs.shape[0]
-    hist_len = history.shape[0]
+    strains = scratch[4:8]
     cycles = 0
     while cycles < budget:
         # -- the sample the sim backend reads (measure: C x behind the filter, noise) ------------
         i_noise = k[K_NOISE]
         if i_noise >= noise.shape[0]:
             return NEED_NOISE, cycles
+        plantstep.measure(state, c_meas, meas_lo, noise, i_noise, strains)
         for j in range(4):
-            acc = 0.0
-            for m in range(c_meas.shape[1]):
-                acc += c_meas[j, m] * state[meas_lo + m]
-            fv[e.IN_Y + j] = acc + noise[i_noise, j]
+            fv[e.IN_Y + j] = strains[j]
         k[K_SEQUENCE] += 1
         fv[e.IN_TIME] = f[F_TIME]
         fv[e.IN_SEQUENCE] = k[K_SEQUENCE]
@@ -91,29 +87,10 @@ def _run_cycles(f, k, budget, state, nxt, ad, bd, c_meas, meas_lo, inputs, histo
             for m in range(6):
                 acc += rig_force[j, m] * (buf[e.I_V + m] - rig_bias[m])
             rig_f[j] = acc
-        if k[K_DELAYED] == 1:
-            head = k[K_HEAD]
-            if hist_len > 1:
-                nxt_head = (head + 1) % hist_len
-                for j in range(4):
-                    inputs[j] = history[nxt_head, j]
-            else:
-                for j in range(4):
-                    inputs[j] = rig_f[j]
-            if k[K_FRACTIONAL] == 1:
-                for j in range(4):
-                    inputs[4 + j] = history[head, j]
-            for j in range(4):
-                history[head, j] = rig_f[j]
-            k[K_HEAD] = (head + 1) % hist_len
-        else:
-            for j in range(4):
-                inputs[j] = rig_f[j]
-        inputs[n_inputs - 1] = f[F_LOAD]
-        np.dot(ad, state, nxt)
-        np.dot(bd, inputs, forced)
-        for j in range(n_states):
-            state[j] = nxt[j] + forced[j]
+        pf[plantstep.P_LOAD] = f[F_LOAD]
+        plantstep.step(state, work, ad, bd, inputs, history, stop_rows, stop_out, rig_f, ik, pf)
+        if ik[plantstep.K_RESTED] == 1 and not f[F_ON_STOPS] == f[F_ON_STOPS]:
+            f[F_ON_STOPS] = f[F_TIME]
         t_new = f[F_TIME] + f[F_PERIOD]
         f[F_TIME] = t_new
         if t_new <= f[F_RAMP_HOLD]:
@@ -187,11 +164,11 @@ _kernel = None
 
 def kernel():
     """The compiled ``run_cycles`` (numba; compiled once per process, cached on disk where the
-    package's folder is writable, and recompiled when the engine it calls has changed:
+    package's folder is writable, and recompiled when the engine or the plant's step it calls has changed:
     ``engine.compile_caller``)."""
     global _kernel
     if _kernel is None:
-        _kernel = e.compile_caller(_run_cycles)
+        _kernel = e.compile_caller(_run_cycles, callees=(plantstep,))
     return _kernel
 
 
@@ -223,12 +200,10 @@ class Accelerator:
         else:
             self._vy = self._vz = np.zeros((1, 4))
         self._lateral = np.ascontiguousarray(plant._lateral)
-        self._scratch = np.zeros(4 + plant.n_states)
+        self._scratch = np.zeros(8)
         f, k = self._f, self._k
         f[F_PERIOD] = plant.period_s
         f[F_CELL] = 2.0 * plant.config.load_tolerance
-        k[K_FRACTIONAL] = 1 if plant._fractional else 0
-        k[K_DELAYED] = 1 if plant._delayed else 0
         k[K_MONITOR] = 1 if monitor is not None else 0
         if monitor is not None:
             k[K_DECIMATE] = monitor.decimate
@@ -265,7 +240,8 @@ class Accelerator:
         f[F_RAMP_START], f[F_RAMP_END], f[F_RAMP_RATE], f[F_RAMP_HOLD] = (ramp.start, ramp.end, ramp.rate,
                                                                           ramp.hold)
         f[F_TIME], f[F_LOAD] = plant.time, plant.axial_load
-        k[K_NOISE], k[K_HEAD], k[K_SEQUENCE] = plant._noise_index, plant._head, hal._sequence
+        k[K_NOISE], k[K_SEQUENCE] = plant._noise_index, hal._sequence
+        f[F_ON_STOPS] = math.nan if plant.on_stops_since is None else plant.on_stops_since
         k[K_BIN], k[K_CYCLES] = plant._bin, 0
         budget = (loop.max_cycles - loop.cycles) if loop.max_cycles is not None else 1 << 62
         if monitor is not None:
@@ -280,14 +256,17 @@ class Accelerator:
             else:
                 mon = _NO_MONITOR
             why, n = self.run_cycles(
-                f, k, budget - total, plant._state, plant._next, plant._ad, plant._bd,
+                f, k, budget - total, plant._state, plant._work, plant._ad, plant._bd,
                 self._c_meas, plant._measured.start, plant._inputs, plant._history, plant._noise_block,
-                c._buffer, c.iv, c.fv, c._mats, self._rig_force, self._rig_bias, self._vy, self._vz,
+                plant._stop_rows, plant._stop_out, plant._ik, plant._pf, c._buffer, c.iv, c.fv, c._mats,
+                self._rig_force, self._rig_bias, self._vy, self._vz,
                 self._lateral, plant._q.start, mon, self._scratch)
             total += n
             # the scalars back where the objects keep them
             plant.time, plant.axial_load = f[F_TIME], f[F_LOAD]
-            plant._noise_index, plant._head = int(k[K_NOISE]), int(k[K_HEAD])
+            plant._noise_index = int(k[K_NOISE])
+            if f[F_ON_STOPS] == f[F_ON_STOPS]:
+                plant.on_stops_since = float(f[F_ON_STOPS])
             hal._sequence = int(k[K_SEQUENCE])
             if monitor is not None and k[K_MONITOR] == 1:
                 monitor.counter = int(k[K_COUNTER])

@@ -188,6 +188,66 @@ class StallRig:
                             limit_samples=float(limit), strain_fraction=fraction,
                             voltage_excursion_v=swing, saturated=saturated, fault=fault)
 
+    def loss(self, load_n: float, every: int, duration_s: float, after_s: float = AFTER_S) -> StallOutcome:
+        """A loss that persists: for ``duration_s`` at ``load_n`` only every ``every``-th sample
+        reaches the controller (the others lost on the bus: the stacks hold the last answer, the
+        next sample arrives with them missed), then ``after_s`` of every sample. ``gap_samples``
+        of the outcome: the samples lost."""
+        plant = self._plant(load_n)
+        c = Controller(self.table, self.config)
+        sample = Sample()
+        forces = np.zeros(4)
+        seq = 0
+
+        def measure() -> float:
+            nonlocal seq
+            strains, load = plant.measure()
+            sample.strains[:] = strains
+            sample.axial_load = load
+            sample.sequence = seq
+            sample.timestamp = plant.time
+            seq += 1
+            return float(np.abs(strains).max())
+
+        def apply(voltages: np.ndarray) -> None:
+            np.dot(self.force_matrix, voltages - self.bias, out=forces)
+            plant.step(forces)
+
+        measure()
+        c.arm(sample)
+        c.start()
+        reach = plant.config.load.duration() + SETTLE_S
+        while plant.time < reach and c.state.name == "RUNNING":
+            measure()
+            sample.missed = 0
+            apply(c.step(sample))
+        held = c.voltages.copy()
+        before = held.copy()                # the operating point the excursion is measured from
+        lossy = int(round(duration_s * self.rate))
+        total = lossy + int(round(after_s * self.rate))
+        strain_top, swing, saturated, lost, since = 0.0, 0.0, False, 0, 0
+        for k in range(total):
+            strain_top = max(strain_top, measure())
+            if k < lossy and k % every:
+                apply(held)                 # lost: the stacks hold the last answer
+                since += 1
+                lost += 1
+                continue
+            sample.missed = since
+            since = 0
+            v = c.step(sample)
+            if c.state.name != "RUNNING":
+                break
+            saturated |= bool(np.any(v <= self.v_range[0]) or np.any(v >= self.v_range[1]))
+            swing = max(swing, float(np.abs(v - before).max()))
+            held = v.copy()
+            apply(held)
+        fault = c.supervisor.fault.name if c.supervisor.fault.name != "NONE" else ""
+        fraction = strain_top / self.strain_limit
+        return StallOutcome(load_n=float(load_n), gap_samples=lost, survived=not fault and not saturated
+                            and fraction < 1.0, limit_samples=float(c.gap_limit), strain_fraction=fraction,
+                            voltage_excursion_v=swing, saturated=saturated, fault=fault)
+
     def edge(self, load_n: float, cap: int, start: int = 1) -> int:
         """The shortest stall (samples) lost at ``load_n`` with the limit lifted, by a galloping
         search from ``start`` and a bisection (survival taken to fall with the stall's length);

@@ -188,7 +188,7 @@ def _rewrite(path, edit, rehash: bool) -> None:
 
 
 def _smaller_growth(d):
-    rows = d["ride_through"]["growth"]["hold"]["deflection"]
+    rows = d["ride_through"]["growth"]["catch_up"]["deflection"]
     rows[-1] = [1.0] * len(rows[-1])
 
 
@@ -208,7 +208,7 @@ def test_a_changed_ride_through_or_prediction_is_refused_by_the_content_hash(tmp
 
 
 def _falling_growth(d):
-    row = d["ride_through"]["growth"]["hold"]["voltage"][0]
+    row = d["ride_through"]["growth"]["catch_up"]["voltage"][0]
     row[-1] = row[0] - 0.5 if row[0] > 1.5 else 1.0
     row[-2] = max(row[-1] + 1.0, 2.0)
 
@@ -226,15 +226,16 @@ def _falling_growth(d):
      "increasing"),
     (lambda d: d["ride_through"]["gap_grid_samples"].__setitem__(0, 0.5), "ride_through.gap_grid_samples",
      "whole numbers >= 1"),
-    (lambda d: d["ride_through"]["growth"]["hold"]["deflection"].pop(), "ride_through.growth.hold.deflection",
-     "one curve per analysed load"),
-    (lambda d: d["ride_through"]["growth"]["hold"]["voltage"][0].pop(), "ride_through.growth.hold.voltage[0]",
-     "one growth >= 1 per gap of the grid"),
-    (lambda d: d["ride_through"]["growth"]["hold"]["voltage"][0].__setitem__(0, 0.5),
-     "ride_through.growth.hold.voltage[0]", ">= 1"),
-    (_falling_growth, "ride_through.growth.hold.voltage[0]", "does not fall"),
+    (lambda d: d["ride_through"]["growth"]["catch_up"]["deflection"].pop(),
+     "ride_through.growth.catch_up.deflection", "one curve per analysed load"),
+    (lambda d: d["ride_through"]["growth"]["catch_up"]["voltage"][0].pop(),
+     "ride_through.growth.catch_up.voltage[0]", "one growth >= 1 per gap of the grid"),
+    (lambda d: d["ride_through"]["growth"]["catch_up"]["voltage"][0].__setitem__(0, 0.5),
+     "ride_through.growth.catch_up.voltage[0]", ">= 1"),
+    (_falling_growth, "ride_through.growth.catch_up.voltage[0]", "does not fall"),
     (lambda d: d["ride_through"]["growth"].__setitem__("predict", {}), "ride_through.growth", "bridges"),
-    (lambda d: d["ride_through"]["growth"]["hold"].pop("voltage"), "ride_through.growth.hold", "outputs"),
+    (lambda d: d["ride_through"]["growth"]["catch_up"].pop("voltage"), "ride_through.growth.catch_up",
+     "outputs"),
     (lambda d: d["ride_through"].__setitem__("rigs", []), "ride_through.rigs", "naming the rigs"),
     (lambda d: d["ride_through"]["answer_budgets_periods"].pop(), "ride_through.answer_budgets_periods",
      "one per grid load"),

@@ -18,8 +18,10 @@ A new sample:
 2. (RUNNING only) the stall ridden through: the stacks held the last answer for the samples the
    source skipped before this one (``sample.missed``) or for the silence before it, whichever is
    longer (floor(time since the previous sample / period - 0.5)); a stall longer than the live
-   limit faults STALE_INPUT; otherwise it is bridged by holding the estimate: the compensator's
-   state and the integral stay as they were, and the newest sample enters the normal step.
+   limit faults STALE_INPUT; otherwise it is bridged by catching up: before the normal step the
+   compensator's state makes one step per sample missed (at most ``CATCH_UP_SAMPLES``) on the
+   newest strains and the forces the stacks held, x_c <- A x_c + B y + E u_applied; the integral
+   stays as it was.
 3. Then, RUNNING: the controlled step (``_control``): the load filter and the schedule (the
    filtered load leaving the grid faults LOAD_OUT_OF_TABLE_RANGE), q, the integral with
    anti-windup, the law, allocation with the clamp to [V_min, V_max], excitation, the fade-in,
@@ -67,7 +69,7 @@ import numpy as np
 
 from beamctl.rt.config import ControllerConfig
 from beamctl.rt.controller import SPREAD_TIME_S, START_GROWTH, ride_through_limits
-from beamctl.rt.engine import RECORD_COLUMNS
+from beamctl.rt.engine import CATCH_UP_SAMPLES, RECORD_COLUMNS
 from beamctl.rt.safety import Fault, State, TransitionError
 
 # the record's layout is the telemetry's format (rt/engine.py defines it); the values in it are
@@ -193,6 +195,7 @@ class ReferenceController:
         self.xi = r[COL["xi_1y"]:COL["xi_1y"] + 4]
         self.applied = r[COL["applied_force_y_A_N"]:COL["applied_force_y_A_N"] + 4]
         self.x = np.zeros(n)                    # the compensator's state x_c
+        self.catch_up = CATCH_UP_SAMPLES       # the samples of a gap caught up on
         self.voltages[:] = self.bias
         r[COL["load_N"]] = math.nan             # no load seen yet
         r[COL["time_s"]] = math.nan
@@ -493,7 +496,7 @@ class ReferenceController:
                     if not held <= self.gap_limit:
                         self._trip(Fault.STALE_INPUT, held, self.gap_limit)
                     elif self.state == State.RUNNING and self.law and missed > 0:
-                        # bridged by holding the estimate: x_c and the integral stay
+                        # bridged by catching up (``_control``): x_c steps once per sample missed
                         flags |= BRIDGED
                         r[COL["bridged"]] = missed
                         self.bridged_total += missed
@@ -553,6 +556,8 @@ class ReferenceController:
                 self._apply_forces()
                 return flags
             m = self.matrices()
+            for _ in range(min(int(r[COL["bridged"]]), int(self.catch_up))):
+                self.x = m.a @ self.x + m.b @ self.strains + m.e @ self.applied
             self._estimate_q()
             # integral action: an increment that would push a saturated support further along
             # the force it was asked for (with the previous u) is held back (anti-windup)
