@@ -35,21 +35,21 @@ load (its onset is what the robust check reports).
 
 Bridges. When a gap ends the engine has ``missed`` samples to bridge before it answers the newest
 one. It catches up (``catch_up``, the one stored): the compensator's state makes one step per
-sample missed on the newest strains and the forces the stacks held, x_c <- A^N x_c + S_N (B y +
-E u_held) with S_N = sum_{j<N} A^j (at most ``CATCH_UP_SAMPLES`` of them), the integral stays,
-and the newest sample enters the normal step. During the gap itself that is the hold's loop
-(``hold``: the compensator frozen, which it may be, since it does not reach the beam until it
-answers); the catch-up is a map of the loop's state at the gap's end (``CatchUp``). Holding the
-compensator after the gap too (the bridge stored before) runs it slower than the beam when samples
-keep missing; a table that stores the hold's growth is read as the catch-up's (on the shipped
-table the two agree within 7 % for the deflection, and the hold's is the larger for the voltages:
-`beamctl gains build` analyses the catch-up). The other way, ``predict`` (N prediction steps of
-the compensator, y_hat = P x_c, x_c <- A x_c + B y_hat + E u_held, then the normal step), has a
-growth of its spread close to hold's here, but in the time domain it drifts from the operating point the beam is held
-at (the static deflection of the bow under load, which the prediction does not hold): over CAN at
-2800 to 3300 N on the simulated rig, a 1 ms gap bridged by prediction moved the stacks by 3 to 85
-V, held by 0.2 to 1 V. ``gap_matrix`` builds both (tests/gains/test_ridethrough.py compares them
-in the time domain); the table stores the growth of the bridge the engine runs.
+sample missed on the newest strains and the forces the stacks held, x_c <- A^N x_c + S_N (B y + E
+u_held) with S_N = sum_{j<N} A^j (at most ``CATCH_UP_SAMPLES`` of them), the integral stays, and
+the newest sample enters the normal step. During the gap itself that is the hold's loop (``hold``:
+the compensator frozen, which it may be, since it does not reach the beam until it answers); the
+catch-up is a map of the loop's state at the gap's end (``CatchUp``). Holding the compensator after
+the gap too (the bridge stored before) runs it slower than the beam when samples keep missing; a
+table that stores the hold's growth is read as the catch-up's (on the shipped table the two agree
+within 7 % for the deflection, and the hold's is the larger for the voltages: `beamctl gains build`
+analyses the catch-up). The other way, ``predict`` (N prediction steps of the compensator, y_hat =
+P x_c, x_c <- A x_c + B y_hat + E u_held, then the normal step), has a growth of its spread close
+to hold's here, but in the time domain it drifts from the operating point the beam is held at (the
+static deflection of the bow under load, which the prediction does not hold): over CAN at 2800 to
+3300 N on the simulated rig, a 1 ms gap bridged by prediction moved the stacks by 3 to 85 V, held
+by 0.2 to 1 V. ``gap_matrix`` builds both (tests/gains/test_ridethrough.py compares them in the
+time domain); the table stores the growth of the bridge the engine runs.
 
 The plant does not see the compensator while the voltages are held, so running those steps late
 or on time is the same loop: per missing sample, x <- Ad x + g (B_now + B_before) u_held (the
