@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
 import sys
 import threading
@@ -54,6 +55,9 @@ def add_parser(sub) -> None:
                         "(default: the DBC's SilenceTimeoutMs)")
     p.add_argument("--fallback-ramp", type=seconds, metavar="S",
                    help="ramp to bias within S seconds when falling back (default: the DBC's FallbackRampMs)")
+    p.add_argument("--cpu", type=int, default=None, metavar="N",
+                   help="the CPU the simulated DAQ runs on (default: the first it may run on, where it may run "
+                        "on more than one: CPU 0, the lab configuration's loop runs on 1; -1: any)")
     p.add_argument("--stats", metavar="FILE",
                    help="write what the DAQ saw as JSON when it stops: samples, answers, and the stalls the "
                         "stacks held one voltage through (the longest, per minute of plant time), in samples "
@@ -83,6 +87,11 @@ def run_plant(args: argparse.Namespace) -> int:
 
 
     interface, channel = parse_can(args.can)
+    cpus = sorted(os.sched_getaffinity(0))
+    if args.cpu is not None and args.cpu != -1 and args.cpu not in cpus:
+        print(f"beamctl plant: error: --cpu {args.cpu}: expected one of the CPUs this process may run on "
+              f"({', '.join(map(str, cpus))}), or -1 for any", file=sys.stderr)
+        return 2
     stats = check_file(args.stats, "--stats") if args.stats else None
     cfg = load_service_config(args.config)
     table = load_gain_table(cfg)
@@ -118,10 +127,11 @@ def run_plant(args: argparse.Namespace) -> int:
             return 2
         print(f"plant: {cells} discretisations of the load programme made in {time.monotonic() - t0:.1f} s",
               flush=True)
+    cpu = args.cpu if args.cpu is not None else (cpus[0] if len(cpus) > 1 else -1)
     granted = realtime.acquire(Realtime(priority=EMULATOR_PRIORITY, helper_priority=EMULATOR_PRIORITY - 1,
-                                              cpu=-1, lock_memory=True))
-    print(f"plant real-time set-up: {granted.get('scheduler', '-')}; garbage collector "
-          f"{granted.get('gc', '-')}", flush=True)
+                                              cpu=cpu, lock_memory=True))
+    print(f"plant real-time set-up: {granted.get('scheduler', '-')}; {granted.get('affinity', 'any CPU')}; "
+          f"garbage collector {granted.get('gc', '-')}", flush=True)
     try:
         emulator.run(samples)
     finally:

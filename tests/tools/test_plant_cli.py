@@ -124,3 +124,12 @@ def test_bus_budget_names_the_table_key_when_the_configuration_s_table_is_missin
     err = capsys.readouterr().err
     assert "gains.table" in err and "--rate" in err and len(err.strip().splitlines()) == 1, err
     assert main(["bus-budget", "--config", str(config), "--rate", "6000"]) == 0
+
+
+@pytest.mark.parametrize("cpu", ["4096", "-2"])
+def test_plant_refuses_a_cpu_it_may_not_run_on(capsys, cpu):
+    """A CPU the process may not run on is refused in one line naming the flag and the CPUs it
+    may run on, before anything is opened."""
+    assert main(["plant", "--can", "virtual:plant-cpu", "--cpu", cpu]) == 2
+    err = capsys.readouterr().err.strip()
+    assert f"--cpu {cpu}" in err and "-1 for any" in err and len(err.splitlines()) == 1, err
