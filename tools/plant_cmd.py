@@ -56,8 +56,8 @@ def add_parser(sub) -> None:
     p.add_argument("--fallback-ramp", type=seconds, metavar="S",
                    help="ramp to bias within S seconds when falling back (default: the DBC's FallbackRampMs)")
     p.add_argument("--cpu", type=int, default=None, metavar="N",
-                   help="the CPU the simulated DAQ runs on (default: the first it may run on, where it may run "
-                        "on more than one: CPU 0, the lab configuration's loop runs on 1; -1: any)")
+                   help="the CPU the simulated DAQ runs on (default: the first it may run on, where it may "
+                        "run on more than one: CPU 0, the lab configuration's loop runs on 1; -1: any)")
     p.add_argument("--stats", metavar="FILE",
                    help="write what the DAQ saw as JSON when it stops: samples, answers, and the stalls the "
                         "stacks held one voltage through (the longest, per minute of plant time), in samples "
