@@ -317,6 +317,8 @@ class Commission:
             table = replace(table, robust=table_record(result, "the calibrated box (box.yaml)"))
             write_text(self.out / "robust.json", json.dumps(result.to_dict(table), indent=1) + "\n")
             note += f"; robust check: worst onset / own Fx,cr {result.worst_ratio:.4f}"
+            if result.refused:
+                note += f" ({result.refused_text()})"
             if result.worst_ratio < 1.0:
                 with replacing(self.out / "gains-not-held.yaml") as temp:
                     write_table(table, temp)

@@ -58,6 +58,12 @@ class ConfigError(ValueError):
         what = f"{key} = {value!r}" if key else repr(value)
         super().__init__(f"{where}{what}: expected {expected}")
 
+    def __reduce__(self):
+        # pickled with its own fields: a refusal raised in a worker process (the robust check's,
+        # a study's) reaches the caller as itself; the default would call the constructor with
+        # the message alone and break the pool that carries it
+        return type(self), (self.key, self.value, self.expected, self.source)
+
 
 class _Invalid(Exception):
     """Raised by a validator with the expectation text; turned into ConfigError by the caller."""

@@ -42,6 +42,7 @@ import signal
 import threading
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from multiprocessing import get_context
@@ -49,6 +50,7 @@ from typing import Any
 
 import numpy as np
 
+from beamctl.common.workers import WorkerDied
 from beamctl.config.schema import ConfigError, dotted_get, read_yaml, refuse_renamed
 from beamctl.gains.rig import RigPlane
 from beamctl.gains.schedule import GainSchedule
@@ -330,6 +332,19 @@ class Onset:
 
 
 @dataclass(frozen=True)
+class Refused:
+    """A rig of the box that the model refuses to build (``reason``: the refusal, e.g. damping
+    ratios that give a negative Rayleigh coefficient): no rig at all, so the box that holds it is
+    partly invalid. Counted and named by the search, never evaluated."""
+
+    values: dict[str, float]
+    reason: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"rig": dict(self.values), "refused": self.reason}
+
+
+@dataclass(frozen=True)
 class Margin:
     """The growth rate (1/s) of the least stable pole of each band of BAND_NAMES of one rig's loop
     at ``load_n`` (a fraction of its own Fx,cr): > 0 is unstable there."""
@@ -405,17 +420,21 @@ def rig_plane(rig: Rig) -> RigPlane:
 
 
 def evaluate(table: GainTable, schedule: GainSchedule, box: Box, values: Mapping[str, float],
-             mode: str = "full", ratio: float | None = None, rig: Rig | None = None) -> Onset | Margin:
+             mode: str = "full", ratio: float | None = None,
+             rig: Rig | None = None) -> Onset | Margin | Refused:
     """One rig (``values``: box key -> factor/offset/value): its onset, walking the check loads
     (``full``, ``check_loads``) or the coarse ones (``search``, ``search_loads``, keeping the
     walk's growth rates); or (``margin``) its growth rates at ``ratio`` x its own Fx,cr. ``rig``:
     the rig itself (models/rig.py), when the caller has built it (``values`` then only label it);
-    by default the box's rig of ``values``."""
+    by default the box's rig of ``values``. A rig the model refuses to build is ``Refused``."""
     if mode not in MODES:
         raise ValueError(f"mode {mode!r}: expected one of {', '.join(MODES)}")
-    plane = rig_plane(rig if rig is not None else rig_of(table, box, values))
-    critical = plane.critical_load_n
     values = {k: float(v) for k, v in values.items()}
+    try:
+        plane = rig_plane(rig if rig is not None else rig_of(table, box, values))
+    except ConfigError as exc:          # a point of the box the model cannot be: counted, not fatal
+        return Refused(values=values, reason=str(exc))
+    critical = plane.critical_load_n
     if mode == "margin":
         load = float(ratio) * critical
         return Margin(values=values, critical_load_n=critical, load_n=load,
@@ -489,8 +508,18 @@ def local_evaluator(table: GainTable, box: Box, workers: int | None = None) -> I
     with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"), initializer=_init_worker,
                              initargs=(table, box)) as pool:
         def spread(jobs, each=None):
+            futures = [pool.submit(_run, job) for job in jobs]
             out = []
-            for r in pool.map(_run, jobs):
+            for k, future in enumerate(futures):
+                try:
+                    r = future.result()
+                except BrokenProcessPool:
+                    flight = [jobs[i][0] for i in range(k, len(futures))
+                              if not futures[i].done() or futures[i].exception() is not None]
+                    named = "; ".join(describe(v, box) for v in flight[:workers])
+                    raise WorkerDied(f"a worker process of the robust check died (killed, out of memory, "
+                                     f"or a crash) while it evaluated one of the rigs in flight: {named}"
+                                     ) from None
                 out.append(r)
                 if each:
                     each(r)
@@ -535,6 +564,7 @@ class RobustResult:
     verified: list[Onset] = field(default_factory=list)
     evaluated: list[Onset] = field(default_factory=list)
     margins: list[Margin] = field(default_factory=list)
+    refused: list[Refused] = field(default_factory=list)
     phases: dict[str, int] = field(default_factory=dict)
     elapsed_s: float = 0.0
 
@@ -548,8 +578,18 @@ class RobustResult:
 
     @property
     def count(self) -> int:
-        """Rigs evaluated: walked (search and verification) or at one load (the climbs)."""
+        """Rigs evaluated: walked (search and verification) or at one load (the climbs); the
+        refused ones apart (``refused``)."""
         return len(self.evaluated) + len(self.margins) + len(self.verified)
+
+    def refused_text(self) -> str:
+        """The refused rigs in a line ("" when none): how many, the first one and why."""
+        if not self.refused:
+            return ""
+        first = self.refused[0]
+        return (f"{len(self.refused)} rigs of the box are no rig the model can build (the box is partly "
+                f"invalid; they were counted, not evaluated), e.g. {describe(first.values, self.box)}: "
+                f"{first.reason}")
 
     def to_dict(self, table: GainTable | None = None) -> dict[str, Any]:
         w = self.worst
@@ -560,6 +600,7 @@ class RobustResult:
                "method": "differential evolution (scipy, seeded, from a Latin hypercube), compass "
                          "refinement, the worst distinct rigs walked again at the check's fine steps",
                "verified": [r.to_dict() for r in sorted(self.verified, key=lambda r: r.ratio)],
+               "refused": len(self.refused), "refused_rigs": [r.to_dict() for r in self.refused[:10]],
                "box": self.box.to_dict()}
         if table is not None:
             out["worst_rig_si"] = rig_si(table, self.box, w.values)
@@ -572,7 +613,8 @@ def table_record(result: RobustResult, box_name: str) -> dict[str, Any]:
     w = result.worst
     return {"worst_ratio": float(w.ratio), "onset_N": w.onset_n, "critical_load_N": float(w.critical_load_n),
             "censored": bool(w.censored), "worst_rig": {k: float(v) for k, v in w.values.items()},
-            "evaluated": int(result.count), "box_name": box_name, "box": result.box.to_dict(),
+            "evaluated": int(result.count), "refused": len(result.refused), "box_name": box_name,
+            "box": result.box.to_dict(),
             "checked": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}
 
 
@@ -584,8 +626,11 @@ def robust_text(record: Mapping[str, Any] | None) -> str:
     where = (f"stays stable to the table's end, at least {record['worst_ratio']:.4f} x its own critical load"
              if record.get("censored") else
              f"goes unstable at {record['worst_ratio']:.4f} x its own critical load")
+    refused = (f"; {record['refused']} rigs of the box the model refuses to build: the box is partly invalid"
+               if record.get("refused") else "")
     return (f"{held}: the worst rig of {record.get('box_name', 'its box')} {where} "
-            f"({record.get('evaluated', '?')} rigs searched, {record.get('checked', 'time not recorded')})")
+            f"({record.get('evaluated', '?')} rigs searched, {record.get('checked', 'time not recorded')}"
+            f"{refused})")
 
 
 def rig_si(table: GainTable, box: Box, values: Mapping[str, float]) -> dict[str, float]:
@@ -651,7 +696,7 @@ def search_worst(table: GainTable, box: Box, evaluator: Evaluator,
     units: list[np.ndarray] = []            # the unit-cube point of every rig walked
     done = [0, math.inf]                    # rigs evaluated, the lowest ratio so far
 
-    def report(r: Onset | Margin) -> None:
+    def report(r: Onset | Margin | Refused) -> None:
         done[0] += 1
         if isinstance(r, Onset):
             done[1] = min(done[1], r.ratio)
@@ -662,9 +707,16 @@ def search_worst(table: GainTable, box: Box, evaluator: Evaluator,
         """The onset ratios of the rigs at ``us`` (the search's walk)."""
         points = [np.clip(np.asarray(u, dtype=float), 0.0, 1.0) for u in us]
         out = evaluator([(box.values(u), "search", None) for u in points], report)
-        result.evaluated.extend(out)
-        units.extend(points)
-        return [r.ratio for r in out]
+        ratios = []
+        for u, r in zip(points, out, strict=True):
+            if isinstance(r, Refused):          # no rig there: the search is kept away from it
+                result.refused.append(r)
+                ratios.append(math.inf)
+                continue
+            result.evaluated.append(r)
+            units.append(u)
+            ratios.append(r.ratio)
+        return ratios
 
     # 1. global: differential evolution over the unit cube, population from a Latin hypercube
     init = qmc.LatinHypercube(d=dim, seed=box.seed).random(box.population)
@@ -672,6 +724,9 @@ def search_worst(table: GainTable, box: Box, evaluator: Evaluator,
                            strategy=box.strategy, tol=0.0, atol=0.0, polish=False, updating="deferred",
                            workers=lambda _f, xs: onsets(list(xs)))
     result.phases["global"] = len(result.evaluated)
+    if not result.evaluated:
+        raise ConfigError("box", box.to_dict()["parameters"], "a box of rigs the model can build: every "
+                          f"rig searched was refused ({result.refused_text()})")
 
     # 2. the ways of failing that the worst so far hides: for each band of BAND_NAMES, climb the
     # growth rate of its least stable pole at the worst ratio so far (x each rig's own Fx,cr),
@@ -687,8 +742,15 @@ def search_worst(table: GainTable, box: Box, evaluator: Evaluator,
         def minus_growth(us: Sequence[np.ndarray], b: int = b) -> list[float]:
             points = [np.clip(np.asarray(u, dtype=float), 0.0, 1.0) for u in us]
             out = evaluator([(box.values(u), "margin", worst) for u in points], report)
-            result.margins.extend(out)
-            return [-m.growth[b] for m in out]
+            minus = []
+            for m in out:
+                if isinstance(m, Refused):
+                    result.refused.append(m)
+                    minus.append(math.inf)
+                else:
+                    result.margins.append(m)
+                    minus.append(-m.growth[b])
+            return minus
 
         share = (box.margin - margins) // (len(BAND_NAMES) - b)
         x, minus, used = _compass(units[i], -growth[i], minus_growth, share, stop_below=0.0)

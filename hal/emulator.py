@@ -121,6 +121,7 @@ class CanPlantEmulator:
         self.long_hold_s = 0.005
         self.long_holds: list[tuple[float, float, int, int]] = []
         self._held_unsent = 0               # samples of the hold under way this process did not send
+        self._counting = False              # holds count from the step after the first answer on
         self._sending = True                # the step under way follows a sample sent
         self._samples_per_minute = max(1, int(round(60.0 / plant.config.period_s)))
         self.stop_event = threading.Event()
@@ -287,7 +288,10 @@ class CanPlantEmulator:
         self._answered = False
         run, self._held_run = self._held_run, 0
         unsent, self._held_unsent = self._held_unsent, 0
-        if run == 0 or self.voltage_frames <= 1:
+        # the steps before the first answer are the controller's start-up, not a stall (its
+        # first answers may come several to a step, as it works through what queued meanwhile)
+        first, self._counting = not self._counting, True
+        if run == 0 or first:
             return
         if run * self.period_s >= self.long_hold_s:
             self.long_holds.append((self.plant.time, self.plant.axial_load, run, unsent))

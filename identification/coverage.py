@@ -21,12 +21,14 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, field
 from multiprocessing import get_context
 from typing import Any
 
 import numpy as np
 
+from beamctl.common.workers import WorkerDied
 from beamctl.identification.identify import IdentifySettings, identify
 from beamctl.models.fit import ALIASES, DEFAULT_PARAMETERS, FitError, FitSettings, fit, resolve_keys
 from beamctl.models.params import ModelParameters, load_parameters, parameters_from_dict
@@ -167,11 +169,19 @@ def run(settings: CoverageSettings, workers: int = 1,
             yield row
         return
     pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn"))
+    done = 0
     try:
         for done, row in enumerate(pool.map(_run_one, jobs), 1):
             if progress:
                 progress(done, len(jobs))
             yield row
+    except BrokenProcessPool:
+        pool.shutdown(wait=False, cancel_futures=True)
+        flight = ", ".join(f"{i} (seed {settings.seed + i})"
+                           for i in range(done, min(done + workers, len(jobs))))
+        raise WorkerDied(f"a worker process of the coverage study died (killed, out of memory, or a crash) "
+                         f"while it fitted one of the rigs in flight: {flight}; the rows before are "
+                         "complete") from None
     except BaseException:           # Ctrl-C, a closed generator: the rigs not begun are not run
         pool.shutdown(wait=False, cancel_futures=True)
         raise

@@ -55,7 +55,7 @@ import numpy as np
 
 from beamctl.config.schema import ConfigError, dotted_get, merge, nested, read_yaml
 from beamctl.gains.defaults import default_table_path
-from beamctl.gains.robust import Box, evaluate
+from beamctl.gains.robust import Box, Refused, evaluate
 from beamctl.gains.schedule import GainSchedule
 from beamctl.gains.table import load_table
 from beamctl.models.params import default_dict
@@ -346,6 +346,9 @@ def _linear(task: Task, table) -> dict[str, Any]:
                fine_band=task.linear["fine_band"], resolution_n=task.linear["resolution_n"])
     r = evaluate(table, GainSchedule.from_table(table), walk, task.values, mode="full",
                  rig=drawn_rig(task, table))
+    if isinstance(r, Refused):                  # parameters that give no valid model: a row that says so
+        return {"onset_n": math.nan, "critical_load_n": math.nan, "ratio": math.nan, "censored": False,
+                "reason": f"invalid rig: {r.reason}"}
     if r.censored:                              # stable to its last load, the table's end
         end = r.stable_to_n
         return {"onset_n": end, "critical_load_n": r.critical_load_n, "ratio": r.ratio, "censored": True,

@@ -116,6 +116,7 @@ def _discard_stdout() -> None:
 def _run(argv: list[str] | None) -> int:
     """Parse ``argv`` and run the command; every refusal and interruption in one line."""
     from beamctl.common.extras import MissingExtraError
+    from beamctl.common.workers import WorkerDied
     from beamctl.config.schema import ConfigError
     from beamctl.rt.live import LiveError
     from beamctl.rt.telemetry import TelemetryError
@@ -134,6 +135,9 @@ def _run(argv: list[str] | None) -> int:
     except (ConfigError, OutputPathError, TelemetryError, MissingExtraError, LiveError) as exc:
         print(f"{name}: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except WorkerDied as exc:
+        print(f"{name}: error: {exc}", file=sys.stderr)
+        return 1
     except Interrupted as exc:
         print(f"{name}: interrupted ({exc})", file=sys.stderr)
         return exc.exit_status

@@ -227,6 +227,8 @@ def _robust(table: GainTable, box, workers: int | None, client=None):
     with ProgressBar("robust check") as bar:
         result = robust_check(table, box, workers=workers, progress=bar, client=client)
         bar.close()
+    if result.refused:
+        print(f"robust check: {result.refused_text()}", file=sys.stderr)
     return result
 
 

@@ -108,3 +108,16 @@ def test_a_dotted_key_reads_and_changes_a_value_an_element_or_a_whole_list():
     assert data == {"beam": {"length": 0.5}, "damping": {"ratios": [0.02, 0.0045]}}
     dotted_update(data, "damping.ratios", lambda old: 2 * old)
     assert data["damping"]["ratios"] == [0.04, 0.009], "a whole list: each element changed"
+
+
+def test_a_refusal_pickles_as_itself():
+    """A refusal raised in a worker process reaches the caller as the same refusal (the robust
+    check's and the coverage study's pools carry it back)."""
+    import pickle
+
+    e = ConfigError("damping.ratios", [0.0193, 0.00528],
+                    "ratios that give non-negative Rayleigh coefficients", "rig 3")
+    again = pickle.loads(pickle.dumps(e))
+    assert type(again) is ConfigError and str(again) == str(e)
+    assert (again.key, again.value, again.expected, again.source) == (e.key, e.value, e.expected, e.source)
+

@@ -15,6 +15,7 @@ from beamctl.gains.robust import (
     Margin,
     Onset,
     Range,
+    Refused,
     box_from_dict,
     check_loads,
     dask_evaluator,
@@ -281,3 +282,32 @@ def test_the_default_box_round_trips_through_its_dict():
     again = box_from_dict(DEFAULT_BOX.to_dict(), params)
     assert again == DEFAULT_BOX
     assert box_from_dict(replace(DEFAULT_BOX, seed=9).to_dict(), params).seed == 9
+
+
+def test_rigs_the_model_refuses_are_counted_and_named_not_a_dead_search(paper_design):
+    """A box part of which is no rig (a rotational stiffness of 0 N m/rad or below, which the
+    model refuses): searched in two worker processes, those rigs are counted and named with the
+    model's refusal, the search keeps to the rest and finds its worst; the refusal crosses the
+    process boundary as itself (a refusal that did not pickle broke the pool before)."""
+    box = Box(parameters={"beam.youngs_modulus": Range("factor", 0.95, 1.05),
+                          "supports.rotational_stiffness": Range("value", -150.0, 250.0)},
+              seed=7, population=8, generations=1, margin=16, refine=12, starts=2, verify=1)
+    with local_evaluator(paper_design, box, workers=2) as evaluator:
+        result = search_worst(paper_design, box, evaluator)
+    assert result.refused, "the search drew no rig from the refused part of the box (a third of it)"
+    assert all(isinstance(r, Refused) and r.values["supports.rotational_stiffness"] <= 0.0
+               and "supports.rotational_stiffness" in r.reason for r in result.refused), result.refused[:3]
+    assert result.worst.values["supports.rotational_stiffness"] > 0.0 and np.isfinite(result.worst_ratio)
+    data = result.to_dict(paper_design)["robust"]
+    assert data["refused"] == len(result.refused) and data["refused_rigs"][0]["refused"]
+    text = result.refused_text()
+    assert f"{len(result.refused)} rigs of the box" in text and "partly invalid" in text, text
+
+
+def test_a_box_of_no_rig_at_all_is_refused_naming_the_box(paper_design):
+    box = Box(parameters={"supports.rotational_stiffness": Range("value", -100.0, -1.0)},
+              seed=7, population=8, generations=1, margin=16, refine=12, starts=2, verify=1)
+    with local_evaluator(paper_design, box, workers=1) as evaluator, pytest.raises(ConfigError) as info:
+        search_worst(paper_design, box, evaluator)
+    assert info.value.key == "box" and "every rig searched was refused" in str(info.value)
+
