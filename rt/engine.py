@@ -174,8 +174,8 @@ def _scratch(n):
 R_STATE = -1        # not allowed in this state
 R_NOT_AT_BIAS = -2  # the voltages have not ramped to bias yet
 
-# the samples of a gap the compensator catches up on (``_catch_up``, 0.55 us each on the lab PC
-# class: 330 us at most); the older ones of a longer gap are held
+# the samples of a gap the compensator catches up on (``_catch_up``, 0.55 us each on this 2-core
+# machine: 330 us at most); the older ones of a longer gap are held
 CATCH_UP_SAMPLES = 600
 GAP_COUNT_CAP = 4.0e18  # the longest gap counted (a count beyond int64 would overflow)
 SPAN_ROUNDING = 1e-12   # relative: far above the few ulps of the coefficients, far below any real excess
@@ -646,7 +646,7 @@ def _control(buf, iv, fv, mats):
             return flags
         # q = (C0 Phi)^-1 y (eq. 30), for telemetry
         _matvec(mats, iv[O_C0], 4, 4, buf, I_Y, buf, I_Q)
-        # a short gap: the compensator and the integral catch up on the samples it missed
+        # a gap: the compensator catches up on the samples it missed (the integral stays)
         missed = buf[I_BRIDGED]
         if missed > 0.0:
             _catch_up(buf, iv, fv, mats, int(missed if missed < fv[P_CATCH_UP] else fv[P_CATCH_UP]))
