@@ -322,9 +322,10 @@ class Commission:
             if result.worst_ratio < 1.0:
                 with replacing(self.out / "gains-not-held.yaml") as temp:
                     write_table(table, temp)
+                refused = f"; {result.refused_text()}" if result.refused else ""
                 raise CommissionError(f"NOT HELD: a rig of the calibrated box goes unstable below its own "
                                       f"critical load ({result.worst_ratio:.4f}); the table is in "
-                                      "gains-not-held.yaml, robust.json names the rig")
+                                      f"gains-not-held.yaml, robust.json names the rig{refused}")
         with replacing(self.out / "gains.yaml") as temp:
             write_table(table, temp)
         (self.out / "gains-not-held.yaml").unlink(missing_ok=True)      # an earlier run's, not this table
