@@ -50,15 +50,18 @@ def test_plant_command_plays_the_daq_for_a_controller(capsys, tmp_path):
     assert np.sum(steps[1:] - 1) <= skipped, (
         f"{np.sum(steps[1:] - 1)} samples missing between those read, the emulator skipped {skipped}")
     # the controller here answers 200 samples and stops: after its last answer the stacks hold
-    # (no stall: nothing ends it), before it at least the samples skipped between two it answered;
-    # the DAQ counts holds once the controller has answered twice (a stall before that is its
-    # start-up), so the jump after the first sample read is not among them
+    # (no stall: nothing ends it). A jump of J between two samples it read is J samples the stacks
+    # held voltages through, in at most three holds (the answers to the first of the two and to
+    # the one before may reach the DAQ within the jump, when this thread answers late on a busy
+    # machine): the longest hold is at least (J - 1) / 3. The DAQ counts holds from its step after
+    # the controller's first answer on (before, its start-up), so the jumps after the first two
+    # samples read, within which that first answer may come, are not among them
     stats = json.loads((tmp_path / "daq.json").read_text())
     assert stats["samples"] == 2500 and stats["voltage_frames"] >= 190, stats
-    answered = steps[1:]
-    assert stats["held_longest_samples"] >= answered.max() - 1, (
+    answered = steps[2:]
+    assert stats["held_longest_samples"] >= (answered.max() - 1) / 3, (
         f"the DAQ recorded a longest hold of {stats['held_longest_samples']} samples, the controller "
-        f"saw a jump of {answered.max()} after sample {np.argmax(answered) + 1} of those it read")
+        f"saw a jump of {answered.max()} after sample {np.argmax(answered) + 2} of those it read")
     assert stats["held_longest_ms"] == pytest.approx(stats["held_longest_samples"] / 2.5), stats
 
 
