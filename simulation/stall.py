@@ -59,6 +59,43 @@ class StallOutcome:
     fault: str
 
 
+class _Lockstep:
+    """A controller and the simulated rig in lockstep: the newest sample into ``sample``
+    (``measure``, returns its largest strain), the stacks' voltages onto the beam for one sample
+    (``apply``), and the start (``bring``: armed, started, brought to the load and held)."""
+
+    def __init__(self, rig: StallRig, plant: Plant, controller: Controller) -> None:
+        self.rig, self.plant, self.c = rig, plant, controller
+        self.sample = Sample()
+        self.forces = np.zeros(4)
+        self.seq = 0
+
+    def measure(self) -> float:
+        strains, load = self.plant.measure()
+        s = self.sample
+        s.strains[:] = strains
+        s.axial_load = load
+        s.sequence = self.seq
+        s.timestamp = self.plant.time
+        self.seq += 1
+        return float(np.abs(strains).max())
+
+    def apply(self, voltages: np.ndarray) -> None:
+        np.dot(self.rig.force_matrix, voltages - self.rig.bias, out=self.forces)
+        self.plant.step(self.forces)
+
+    def bring(self, settle_s: float) -> None:
+        c, sample = self.c, self.sample
+        self.measure()
+        c.arm(sample)
+        c.start()
+        reach = self.plant.config.load.duration() + settle_s
+        while self.plant.time < reach and c.state.name == "RUNNING":
+            self.measure()
+            sample.missed = 0
+            self.apply(c.step(sample))
+
+
 class StallRig:
     """A controller of ``table`` (``config``: the shipped settings by default) on a simulated
     rig (``rig``: None for the nominal), ready to bring to a load and stall."""
@@ -117,23 +154,9 @@ class StallRig:
             o, n, gl = int(c.iv[e.O_GROWTH]), int(c.iv[e.V_N_GRID]), int(c.iv[e.V_N_GLOADS])
             c._mats[o:o + gl * 2 * n] = 1.0
             c.fv[e.P_GAP_CAP] = c.fv[e.P_LATE_CAP] = np.inf
-        sample = Sample()
-        seq = 0
-        forces = np.zeros(4)
+        bench = _Lockstep(self, plant, c)
+        sample, measure, apply = bench.sample, bench.measure, bench.apply
         strain_top, swing, saturated = 0.0, 0.0, False
-
-        def measure() -> None:
-            nonlocal seq
-            strains, load = plant.measure()
-            sample.strains[:] = strains
-            sample.axial_load = load
-            sample.sequence = seq
-            sample.timestamp = plant.time
-            seq += 1
-
-        def apply(voltages: np.ndarray) -> None:
-            np.dot(self.force_matrix, voltages - self.bias, out=forces)
-            plant.step(forces)
 
         def stall(samples: int) -> np.ndarray:
             """The stacks hold the last answer for ``samples`` samples the controller never
@@ -164,14 +187,7 @@ class StallRig:
                 apply(v)
             return True
 
-        measure()
-        c.arm(sample)
-        c.start()
-        reach = plant.config.load.duration() + settle_s
-        while plant.time < reach and c.state.name == "RUNNING":
-            measure()
-            sample.missed = 0
-            apply(c.step(sample))
+        bench.bring(settle_s)
         limit = c.gap_limit
         first, between = before
         if first > 0 and not answer(max(between, 1), stall(first)):
@@ -193,34 +209,10 @@ class StallRig:
         reaches the controller (the others lost on the bus: the stacks hold the last answer, the
         next sample arrives with them missed), then ``after_s`` of every sample. ``gap_samples``
         of the outcome: the samples lost."""
-        plant = self._plant(load_n)
         c = Controller(self.table, self.config)
-        sample = Sample()
-        forces = np.zeros(4)
-        seq = 0
-
-        def measure() -> float:
-            nonlocal seq
-            strains, load = plant.measure()
-            sample.strains[:] = strains
-            sample.axial_load = load
-            sample.sequence = seq
-            sample.timestamp = plant.time
-            seq += 1
-            return float(np.abs(strains).max())
-
-        def apply(voltages: np.ndarray) -> None:
-            np.dot(self.force_matrix, voltages - self.bias, out=forces)
-            plant.step(forces)
-
-        measure()
-        c.arm(sample)
-        c.start()
-        reach = plant.config.load.duration() + SETTLE_S
-        while plant.time < reach and c.state.name == "RUNNING":
-            measure()
-            sample.missed = 0
-            apply(c.step(sample))
+        bench = _Lockstep(self, self._plant(load_n), c)
+        sample, measure, apply = bench.sample, bench.measure, bench.apply
+        bench.bring(SETTLE_S)
         held = c.voltages.copy()
         before = held.copy()                # the operating point the excursion is measured from
         lossy = int(round(duration_s * self.rate))
