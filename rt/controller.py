@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from beamctl.config.schema import ConfigError
-from beamctl.gains.ridethrough import CONFIDENCE_SIGMA, GROWTH_CAP
+from beamctl.gains.ridethrough import CONFIDENCE_SIGMA, DELAY_MARGIN, GROWTH_CAP
 from beamctl.gains.schedule import GainSchedule
 from beamctl.gains.table import GainTable
 from beamctl.hal.base import Sample
@@ -79,8 +79,24 @@ from beamctl.rt.safety import Fault, Safety, State, TransitionError
 LEGACY_GAP_LIMIT, LEGACY_BUDGET_PERIODS = 5, 0.5
 # the moving spreads of the ride-through follow the signals with this time constant
 SPREAD_TIME_S = 0.1
+# the excursion the loop shows beyond its means is held at its peak and decays with this time
+# constant: a stall's recovery at 3300 N is over within about 10 ms (simulation/stall.py)
+EXCURSION_TIME_S = 0.01
+# a sample enters the moving statistics within k spreads of the mean (a recovery's transient does
+# not inflate them for long after), and within at least these (strain, V): a quarter of the
+# gauges' 0.2 ue noise, a tenth of the stacks' stationary 0.2 V spread at 3300 N
+SPREAD_CLIP_FLOOR = (5e-8, 0.02)
 # a start allows the growth of this (the moving variances begin at the headroom over k times it)
 START_GROWTH = 10.0
+
+
+def tolerated_periods(budgets: np.ndarray, design_delay_samples: float) -> np.ndarray:
+    """The latest answer (periods after its sample) the loop tolerates, per grid point: the design's
+    delay plus the extra delay of the table's delay search, whose half the answer budget allows
+    (gains/ridethrough.py ``answer_budget``); from a budget the configuration tightened, as much
+    less. Never less than the budget."""
+    b = np.asarray(budgets, dtype=float)
+    return np.maximum(b, design_delay_samples + DELAY_MARGIN * (b - design_delay_samples))
 
 
 @dataclass(frozen=True)
@@ -263,6 +279,8 @@ class Controller:
         fv[e.P_PERIOD] = self.period_s
         fv[e.P_STAT_ALPHA] = 1.0 - np.exp(-self.period_s / SPREAD_TIME_S)
         fv[e.P_START_GROWTH] = START_GROWTH
+        fv[e.P_EXCURSION_DECAY] = np.exp(-self.period_s / EXCURSION_TIME_S)
+        fv[e.P_CLIP_FLOOR:e.P_CLIP_FLOOR + 2] = SPREAD_CLIP_FLOOR
         fv[e.P_CATCH_UP] = e.CATCH_UP_SAMPLES
         self._gap_cap = np.inf          # the DAQ's own silence (``cap_gap_limit``)
         self._bias = np.full(6, act.bias_voltage_v)
@@ -289,7 +307,8 @@ class Controller:
         limits = ride_through_limits(table, self.config)
         # the answer budget per grid interval (the engine's index): the lesser of its two ends
         budgets = np.minimum(limits.budgets, np.concatenate([limits.budgets[1:], limits.budgets[-1:]]))
-        budgets = budgets * self.period_s
+        tolerated = tolerated_periods(budgets, table.design.io.delay_samples)
+        budgets = np.concatenate([budgets, tolerated]) * self.period_s
         comp = table.compensator
         schedule = GainSchedule.from_table(table)
         n = comp.n_states

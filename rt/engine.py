@@ -149,7 +149,17 @@ X_QM, X_QV, X_YM, X_VM, X_VV, X_LIMIT, X_ALLOWED = 51, 53, 55, 59, 65, 71, 73
 P_STAT_ALPHA, P_K_SIGMA, P_C1, P_GAP_CAP, P_LATE_CAP, P_PERIOD, P_START_GROWTH = 75, 76, 77, 79, 80, 81, 82
 # the samples of a gap caught up on (``_catch_up``; the older ones of a longer gap are held)
 P_CATCH_UP = 83
-N_FV = 84
+# the excursion the loop shows now beyond its means (deflection as strain, voltage), held at its
+# peak and decaying by P_EXCURSION_DECAY per sample (``_stats_update``), and that decay
+X_EXCURSION, P_EXCURSION_DECAY = 84, 86
+# the least deviation a sample's entry into the moving statistics is clipped at (deflection as
+# strain, voltage): a spread that collapsed (a stack held at a limit) still learns
+P_CLIP_FLOOR = 87
+# the latest answer the loop tolerates at the grid point in use (s): the design's delay and the
+# extra delay its loop stays stable with (the table's delay search); an answer later than the
+# budget is late, and only one later than this holds the stacks stale
+P_TOLERATED_S = 89
+N_FV = 90
 
 # Scratch after x_c in ``buf``: a plane's gathered signals (6 + n), a product's result (n + 4).
 # ``V_SPLIT`` 1: the compensator's two bending planes do not couple and their
@@ -245,7 +255,9 @@ def gap_allowed(growth, o, grid, g0, n, allowed_q, allowed_v):
 
 def _allowed(buf, fv):
     """The growth the headroom allows, deflection and voltage (gains/ridethrough.py): the
-    headroom over k times the spread, from the moving means and variances."""
+    headroom over k times the spread, from the moving means and variances, or over the excursion
+    the loop shows now where that is larger (a recovery under way: a gap that starts there grows
+    from it)."""
     k = fv[P_K_SIGMA]
     sq = 0.0
     for p in range(2):
@@ -268,8 +280,10 @@ def _allowed(buf, fv):
         if h < hv:
             hv = h
     hq = fv[P_STRAIN_LIMIT] - ym
-    aq = hq / (k * sq) if sq > 0.0 else math.inf
-    av = hv / (k * sv) if sv > 0.0 else math.inf
+    bq = k * sq if k * sq > fv[X_EXCURSION] else fv[X_EXCURSION]
+    bv = k * sv if k * sv > fv[X_EXCURSION + 1] else fv[X_EXCURSION + 1]
+    aq = hq / bq if bq > 0.0 else math.inf
+    av = hv / bv if bv > 0.0 else math.inf
     if not hq > 0.0:
         aq = 0.0
     if not hv > 0.0:
@@ -330,23 +344,50 @@ def _stats_start(buf, iv, fv, mats):
             h = buf[I_V + j] - fv[P_V_MIN]
         s = h / k if h > 0.0 else 0.0
         fv[X_VV + j] = s * s
+    fv[X_EXCURSION] = 0.0
+    fv[X_EXCURSION + 1] = 0.0
     _live_limit(buf, iv, fv, mats)
 
 
 def _stats_update(buf, iv, fv, mats):
     """One controlled sample into the moving statistics (exponential, coefficient
-    P_STAT_ALPHA), then the live limits."""
+    P_STAT_ALPHA; a deviation beyond k spreads, or the floor where that is less, enters as
+    that, so that a recovery's
+    transient, which the excursion covers while it lasts, does not inflate the spreads for
+    long after it), and into the excursion; then the live limits."""
     a = fv[P_STAT_ALPHA]
+    k = fv[P_K_SIGMA]
+    decay = fv[P_EXCURSION_DECAY]
+    eq = fv[X_EXCURSION] * decay
+    ev = fv[X_EXCURSION + 1] * decay
     for p in range(2):
         d = buf[I_Q + p] - fv[X_QM + p]
+        x = abs(d) * fv[P_C1 + p]
+        if x > eq:
+            eq = x
+        c = k * math.sqrt(fv[X_QV + p])
+        f = fv[P_CLIP_FLOOR] / fv[P_C1 + p] if fv[P_C1 + p] > 0.0 else math.inf
+        if c < f:
+            c = f
+        if abs(d) > c:
+            d = c if d > 0.0 else -c
         fv[X_QM + p] += a * d
         fv[X_QV + p] = (1.0 - a) * (fv[X_QV + p] + a * d * d)
     for j in range(4):
         fv[X_YM + j] += a * (buf[I_Y + j] - fv[X_YM + j])
     for j in range(6):
         d = buf[I_V + j] - fv[X_VM + j]
+        if abs(d) > ev:
+            ev = abs(d)
+        c = k * math.sqrt(fv[X_VV + j])
+        if c < fv[P_CLIP_FLOOR + 1]:
+            c = fv[P_CLIP_FLOOR + 1]
+        if abs(d) > c:
+            d = c if d > 0.0 else -c
         fv[X_VM + j] += a * d
         fv[X_VV + j] = (1.0 - a) * (fv[X_VV + j] + a * d * d)
+    fv[X_EXCURSION] = eq
+    fv[X_EXCURSION + 1] = ev
     _live_limit(buf, iv, fv, mats)
 
 
@@ -354,6 +395,7 @@ def _limits(iv, fv, mats):
     """The answer budget at the grid point in use (the table's, per grid interval: the lesser of
     its two ends); the gap and late-answer limits are live (``_live_limit``)."""
     fv[P_BUDGET_S] = mats[iv[O_LIM] + iv[V_INDEX]]
+    fv[P_TOLERATED_S] = mats[iv[O_LIM] + iv[V_N_LOADS] + iv[V_INDEX]]
 
 
 def _settle(iv, fv, mats, load):
@@ -832,8 +874,11 @@ def sample_cycle(core, nb, time_s, sequence, load_n, missed, strains):
 
 def answered(buf, iv, fv, age_s):
     """The answer to the latest sample had been sent ``age_s`` after the sample arrived (NaN: not
-    measured). Later than the budget it is late; more than ``late_limit`` late answers in a row
-    fault a running controller. Returns the state."""
+    measured). Later than the budget it is late (counted). An answer later than the delay the loop
+    tolerates held the stacks at a stale voltage; more than ``late_limit`` such answers in a row
+    fault a running controller (a streak of answers late within that delay is a loop running with
+    more delay than its design, stable: the stacks never hold one voltage much longer than a
+    period). Returns the state."""
     if age_s != age_s:
         return iv[V_STATE]
     buf[I_ANSWER_AGE_US] = age_s * 1e6
@@ -841,9 +886,12 @@ def answered(buf, iv, fv, age_s):
         iv[V_LATE_STREAK] = 0
     else:
         iv[V_LATE_TOTAL] += 1
-        iv[V_LATE_STREAK] += 1
-        if iv[V_LATE_STREAK] > iv[V_LATE_LIMIT] and iv[V_STATE] == S_RUNNING:
-            _trip(buf, iv, fv, F_LATE_ANSWERS, age_s, fv[P_BUDGET_S], iv[V_LATE_STREAK])
+        if age_s <= fv[P_TOLERATED_S]:
+            iv[V_LATE_STREAK] = 0
+        else:
+            iv[V_LATE_STREAK] += 1
+            if iv[V_LATE_STREAK] > iv[V_LATE_LIMIT] and iv[V_STATE] == S_RUNNING:
+                _trip(buf, iv, fv, F_LATE_ANSWERS, age_s, fv[P_TOLERATED_S], iv[V_LATE_STREAK])
     buf[I_LATE_ANSWERS] = iv[V_LATE_TOTAL]
     buf[I_STATE] = iv[V_STATE]
     buf[I_FAULT] = iv[V_FAULT]

@@ -59,7 +59,7 @@ DESCRIPTIONS = {
     Fault.PERSISTENT_SATURATION: "the stack voltages stayed saturated for too long",
     Fault.HAL_ERROR: "the hardware abstraction reported an error",
     Fault.OPERATOR: "stopped by the operator",
-    Fault.LATE_ANSWERS: "a streak of samples was answered later than the latency budget",
+    Fault.LATE_ANSWERS: "a streak of samples was answered later than the delay the loop tolerates",
 }
 
 

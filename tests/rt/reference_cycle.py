@@ -37,11 +37,12 @@ controller faults STALE_INPUT once floor(silent_periods) exceeds the live limit'
 (or the silence is not a number). FAULT and
 STOPPING advance the ramp.
 
-Between cycles: ``answer_sent(age_s)``: an answer later than the budget is late, more than the
-late limit of them in a row fault a RUNNING controller (LATE_ANSWERS); an answer within the
-budget ends the streak; NaN (not measured) counts nothing. ``cycle_overran()``: the overrun
-streak grows and faults OVERRUN_STREAK (in any state) when it reaches the configured streak;
-``cycle_on_time()`` ends it.
+Between cycles: ``answer_sent(age_s)``: an answer later than the budget is late (counted); one
+later than the delay the loop tolerates (the design's delay plus twice the budget's margin over
+it) held the stacks stale, and more than the late limit of those in a row fault a RUNNING
+controller (LATE_ANSWERS); any other answer ends the streak; NaN (not measured) counts nothing.
+``cycle_overran()``: the overrun streak grows and faults OVERRUN_STREAK (in any state) when it
+reaches the configured streak; ``cycle_on_time()`` ends it.
 
 The ride-through (gains/ridethrough.py, ``rt.controller.ride_through_limits``). The live limit is
 the longest gap of the table's grid whose growth (of the interval between the analysed loads that
@@ -68,7 +69,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from beamctl.rt.config import ControllerConfig
-from beamctl.rt.controller import SPREAD_TIME_S, START_GROWTH, ride_through_limits
+from beamctl.rt.controller import (
+    EXCURSION_TIME_S,
+    SPREAD_CLIP_FLOOR,
+    SPREAD_TIME_S,
+    START_GROWTH,
+    ride_through_limits,
+)
 from beamctl.rt.engine import CATCH_UP_SAMPLES, RECORD_COLUMNS
 from beamctl.rt.safety import Fault, State, TransitionError
 
@@ -176,12 +183,17 @@ class ReferenceController:
         limits = ride_through_limits(table, config)
         budgets = np.asarray(limits.budgets, dtype=float)
         self.interval_budgets = np.minimum(budgets, np.concatenate([budgets[1:], budgets[-1:]]))
+        # the latest answer the loop tolerates: the design's delay plus twice the budget's margin
+        # over it (the extra delay the table's delay search found stable), never below the budget
+        design = table.design.io.delay_samples
+        self.interval_tolerated = [max(b, design + 2.0 * (b - design)) for b in self.interval_budgets]
         self.growth_loads = [float(v) for v in limits.growth_loads]
         self.growth = np.asarray(limits.growth, dtype=float)      # [interval, bridge, output, gap]
         self.gap_grid = [float(v) for v in limits.grid]
         self.sigma = limits.confidence_sigma
         self.gap_cap, self.late_cap = limits.gap_cap, limits.late_cap
         self.stat_alpha = 1.0 - math.exp(-self.period_s / SPREAD_TIME_S)
+        self.excursion_decay = math.exp(-self.period_s / EXCURSION_TIME_S)
         c0_phi = np.linalg.inv(self.c0_phi_inv)
         self.mode1_strain = [float(np.abs(c0_phi[[0, 2], 0]).max()), float(np.abs(c0_phi[[1, 3], 1]).max())]
 
@@ -229,6 +241,7 @@ class ReferenceController:
         self.q_mean, self.q_var = [0.0, 0.0], [0.0, 0.0]
         self.y_mean = [0.0] * 4
         self.v_mean, self.v_var = [0.0] * 6, [0.0] * 6
+        self.excursion_q = self.excursion_v = 0.0
         self.live_limit = 0.0
 
     # the ride-through limits now
@@ -262,19 +275,34 @@ class ReferenceController:
             self.v_mean[j] = float(v)
             h = min(self.v_max - v, v - self.v_min)
             self.v_var[j] = (h / k) ** 2 if h > 0.0 else 0.0
+        self.excursion_q = self.excursion_v = 0.0
         self._update_limit()
 
     def _stats_update(self) -> None:
-        """One controlled sample into the exponential means and variances, then the limit."""
+        """One controlled sample into the exponential means and variances (a deviation beyond
+        k spreads enters as k spreads) and into the excursion (the largest deviation from the
+        means now, or the last excursion decayed), then the limit."""
         a = self.stat_alpha
+
+        def clipped(d: float, var: float, floor: float) -> float:
+            c = max(self.sigma * math.sqrt(var), floor)
+            return max(-c, min(c, d))
+
+        self.excursion_q *= self.excursion_decay
+        self.excursion_v *= self.excursion_decay
         for p in range(2):
             d = float(self.q[p]) - self.q_mean[p]
+            self.excursion_q = max(self.excursion_q, abs(d) * self.mode1_strain[p])
+            d = clipped(d, self.q_var[p], SPREAD_CLIP_FLOOR[0] / self.mode1_strain[p]
+                        if self.mode1_strain[p] > 0.0 else math.inf)
             self.q_mean[p] += a * d
             self.q_var[p] = (1.0 - a) * (self.q_var[p] + a * d * d)
         for j in range(4):
             self.y_mean[j] += a * (float(self.strains[j]) - self.y_mean[j])
         for j in range(6):
             d = float(self.voltages[j]) - self.v_mean[j]
+            self.excursion_v = max(self.excursion_v, abs(d))
+            d = clipped(d, self.v_var[j], SPREAD_CLIP_FLOOR[1])
             self.v_mean[j] += a * d
             self.v_var[j] = (1.0 - a) * (self.v_var[j] + a * d * d)
         self._update_limit()
@@ -286,8 +314,10 @@ class ReferenceController:
         spread_v = max(math.sqrt(v) for v in self.v_var)
         headroom_q = self.strain_limit - max(abs(y) for y in self.y_mean)
         headroom_v = min(min(self.v_max - m, m - self.v_min) for m in self.v_mean)
-        allowed_q = headroom_q / (self.sigma * spread_q) if spread_q > 0.0 else math.inf
-        allowed_v = headroom_v / (self.sigma * spread_v) if spread_v > 0.0 else math.inf
+        bound_q = max(self.sigma * spread_q, self.excursion_q)
+        bound_v = max(self.sigma * spread_v, self.excursion_v)
+        allowed_q = headroom_q / bound_q if bound_q > 0.0 else math.inf
+        allowed_v = headroom_v / bound_v if bound_v > 0.0 else math.inf
         if not headroom_q > 0.0:
             allowed_q = 0.0
         if not headroom_v > 0.0:
@@ -448,9 +478,13 @@ class ReferenceController:
             self.late_streak = 0
         else:
             self.late_total += 1
-            self.late_streak += 1
-            if self.late_streak > self.late_limit and self.state == State.RUNNING:
-                self._trip(Fault.LATE_ANSWERS, age_s, self.answer_budget_s, self.late_streak)
+            tolerated = self.interval_tolerated[self.index] * self.period_s
+            if age_s <= tolerated:
+                self.late_streak = 0
+            else:
+                self.late_streak += 1
+                if self.late_streak > self.late_limit and self.state == State.RUNNING:
+                    self._trip(Fault.LATE_ANSWERS, age_s, tolerated, self.late_streak)
         r[COL["late_answers"]] = self.late_total
         self._record_state()
 
