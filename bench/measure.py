@@ -26,6 +26,8 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
+from beamctl.assembly import live as live_view
+from beamctl.assembly.run import load_gain_table
 from beamctl.common.signals import Interrupted, stop_on_signals
 from beamctl.gains.build import build_table
 from beamctl.gains.defaults import default_table_path
@@ -44,8 +46,6 @@ from beamctl.rt.config import controller_config
 from beamctl.rt.controller import Controller
 from beamctl.rt.loop import ControlLoop
 from beamctl.rt.telemetry import TelemetryWriter
-from beamctl.service import live as live_view
-from beamctl.service.setup import load_gain_table
 from beamctl.simulation import simkernel
 from beamctl.simulation.experiment import experiment_config, run_mode, summarise
 

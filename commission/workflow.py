@@ -37,6 +37,7 @@ from typing import Any
 
 import yaml
 
+from beamctl.assembly.run import ServiceConfig, load_gain_table, service_config
 from beamctl.common.outputs import check_dir, replacing, write_text
 from beamctl.common.signals import Interrupted
 from beamctl.config.schema import ConfigError, read_yaml
@@ -55,7 +56,6 @@ from beamctl.models.params import ModelParameters
 from beamctl.reports import plots
 from beamctl.rt.allocation import geometry as controller_geometry
 from beamctl.rt.stop import StopRequest
-from beamctl.service.setup import ServiceConfig, load_gain_table, service_config
 from beamctl.simulation.experiment import experiment_config, experiment_tables, run_experiment
 
 STEPS = ("identify", "fit", "stacks", "box", "gains", "experiment", "report")

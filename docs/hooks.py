@@ -165,15 +165,15 @@ DEFAULTS_ONLY: dict[str, tuple[str, str, str]] = {
 # Sections checked by code with neither schema nor defaults to read: (the function, where the
 # documentation gives the keys).
 NOT_INTROSPECTABLE: dict[str, tuple[str, str]] = {
-    "gains": ("beamctl.service.setup.service_config", "the overview above"),
-    "run": ("beamctl.service.setup.service_config", "the overview above"),
-    "control": ("beamctl.service.setup.service_config", "the overview above"),
+    "gains": ("beamctl.assembly.run.service_config", "the overview above"),
+    "run": ("beamctl.assembly.run.service_config", "the overview above"),
+    "control": ("beamctl.assembly.run.service_config", "the overview above"),
     "study": ("beamctl.simulation.study.study_from_dict", "[Uncertainty studies](studies.md)"),
 }
 # Keys refused with the name to use instead: (module, mapping of old to new dotted keys, prefix).
 RENAMED = (("beamctl.rt.config", "RENAMED_KEYS", "controller."),
            ("beamctl.hal.config", "RENAMED_KEYS", "hal."),
-           ("beamctl.service.setup", "RENAMED_RUN_KEYS", "run."))
+           ("beamctl.assembly.run", "RENAMED_RUN_KEYS", "run."))
 
 
 def _source_file(module: str) -> str:

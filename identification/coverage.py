@@ -28,11 +28,11 @@ from typing import Any
 
 import numpy as np
 
+from beamctl.assembly.run import load_gain_table, service_config
 from beamctl.common.workers import WorkerDied
 from beamctl.identification.identify import IdentifySettings, identify
 from beamctl.models.fit import ALIASES, DEFAULT_PARAMETERS, FitError, FitSettings, fit, resolve_keys
 from beamctl.models.params import ModelParameters, load_parameters, parameters_from_dict
-from beamctl.service.setup import load_gain_table, service_config
 
 Z_95 = 1.959964                 # the two-sided 95 % point of the normal distribution
 BEAM_SCATTER = {"beam.youngs_modulus": (0.97, 1.03), "supports.rotational_stiffness": (0.8, 1.2),

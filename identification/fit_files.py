@@ -8,11 +8,11 @@ import math
 
 import yaml
 
+from beamctl.assembly.run import load_model_file
 from beamctl.config.schema import ConfigError, read_yaml
 from beamctl.models.fit import Eigenfrequency, FitResult
 from beamctl.models.measured import FrfData
 from beamctl.models.params import ModelParameters
-from beamctl.service.setup import load_model_file
 
 
 def read_eigenfrequencies(path: str) -> list[Eigenfrequency]:

@@ -37,6 +37,13 @@ from dataclasses import asdict, dataclass, replace
 import numpy as np
 import scipy.signal as sig
 
+from beamctl.assembly.run import (
+    ServiceConfig,
+    build_hal,
+    build_plant,
+    check_voltage_range,
+    plant_settings,
+)
 from beamctl.common.signals import Interrupted
 from beamctl.config.schema import ConfigError
 from beamctl.gains.table import GainTable
@@ -57,13 +64,6 @@ from beamctl.rt.allocation import geometry as controller_geometry
 from beamctl.rt.controller import I_LOAD, Controller
 from beamctl.rt.loop import ControlLoop, StopRequest
 from beamctl.rt.safety import Fault
-from beamctl.service.setup import (
-    ServiceConfig,
-    build_hal,
-    build_plant,
-    check_voltage_range,
-    plant_settings,
-)
 
 # open loop only below this fraction of the controller model's critical load: the beam at bias
 # is then stiff enough that a small excitation stays small

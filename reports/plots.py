@@ -6,7 +6,6 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -18,12 +17,10 @@ from beamctl.models.fit import model_response
 from beamctl.models.measured import FrfData, resonances
 from beamctl.models.modal import ModalModel
 from beamctl.models.params import ModelParameters
+from beamctl.reports.record import RunRecord
 from beamctl.rt.safety import Fault, State
 from beamctl.simulation.experiment import direction_at
 from beamctl.simulation.study import survival
-
-if TYPE_CHECKING:
-    from beamctl.reports.report import RunRecord
 
 # the figures of ``beamctl experiment``'s report
 FIG7A, FIG7B, VOLTAGES = "fig7a_deflection_vs_load.png", "fig7b_path_yz.png", "voltages_vs_load.png"

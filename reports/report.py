@@ -17,7 +17,7 @@ import html
 import json
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -30,15 +30,14 @@ from beamctl.models.modal import Deflection
 from beamctl.models.params import parameters_from_dict
 from beamctl.reports import plots
 from beamctl.reports.plots import OFF_SCALE_M, RunCurves, png_bytes
-from beamctl.rt.controller import FLAG_NO_NEW_SAMPLE, FLAG_SATURATED_A, FLAG_SATURATED_B
+from beamctl.reports.record import DEFAULT_VOLTAGE_LIMITS_V, FIGURE_POINTS, RunRecord
+from beamctl.rt.controller import FLAG_NO_NEW_SAMPLE
 from beamctl.rt.safety import DESCRIPTIONS, Fault, State
 from beamctl.rt.telemetry import TelemetryError, read_telemetry
 from beamctl.simulation.experiment import direction_at, first_crossing
 
 FAILURE_DEFLECTION_M = 1.0e-3         # the paper's larger admissible deflection (section 4)
-FIGURE_POINTS = 20_000                # at most this many points a curve in a figure
 LOAD_VARIES_N = 100.0                 # a run whose load moved less has no deflection-versus-load figure
-DEFAULT_VOLTAGE_LIMITS_V = (0.0, 150.0)
 REPORT_DPI = 100
 # a run this long whose stacks saturated or that faulted gets a second figure over time: the
 # last moments, from EVENT_LEAD_S before the first saturation or fault to the end
@@ -46,64 +45,6 @@ LONG_RUN_S = 10.0
 EVENT_LEAD_S = 2.0
 EVENT_AFTER_S = 2.0
 SATURATION_EVENT_S = 0.01           # a saturation this long is an event of the run
-
-
-# the per-sample series of a record (what ``RunRecord.window`` slices)
-_SERIES = ("time_s", "load_n", "load_filtered_n", "deflection_m", "deflection_y_m", "deflection_z_m",
-           "voltages_v", "state", "fault", "flags", "step_us", "answer_age_us", "late_answers")
-
-
-@dataclass(frozen=True)
-class RunRecord:
-    """One recording in physical units, at full rate (rows before the first sample dropped)."""
-
-    path: Path
-    meta: dict
-    model_note: str                     # which model the deflection was computed with
-    sample_rate_hz: float
-    time_s: np.ndarray                  # from the first sample
-    load_n: np.ndarray
-    load_filtered_n: np.ndarray
-    deflection_m: np.ndarray            # the gauges' reconstruction, largest along the beam
-    deflection_y_m: np.ndarray
-    deflection_z_m: np.ndarray
-    voltages_v: np.ndarray              # [n x 6]: a1 a2 a3 b1 b2 b3
-    state: np.ndarray
-    fault: np.ndarray
-    flags: np.ndarray
-    step_us: np.ndarray
-    answer_age_us: np.ndarray
-    late_answers: np.ndarray
-    recorded_rows: int = 0              # complete rows in the file
-    incomplete_row_bytes: int = 0
-    critical_load_n: float | None = None
-    voltage_limits_v: tuple[float, float] = DEFAULT_VOLTAGE_LIMITS_V
-    bias_voltage_v: float = 75.0
-    settings: dict = field(default_factory=dict)
-
-    @property
-    def label(self) -> str:
-        mode = self.meta.get("mode")
-        return f"{self.path.name} ({mode} run)" if mode else self.path.name
-
-    @property
-    def controlled(self) -> bool:
-        return bool(np.any(self.state == State.RUNNING))
-
-    def saturated(self, support: str) -> np.ndarray:
-        """Samples whose allocation could not give support ``A``'s or ``B``'s force."""
-        bit = FLAG_SATURATED_A if support == "A" else FLAG_SATURATED_B
-        return (self.flags & bit) != 0
-
-    def window(self, start_s: float, end_s: float) -> RunRecord:
-        """The samples from ``start_s`` to ``end_s`` (times from the first sample, kept)."""
-        part = (self.time_s >= start_s) & (self.time_s <= end_s)
-        series = {name: getattr(self, name)[part] for name in _SERIES}
-        return replace(self, **series)
-
-    def stride(self) -> int:
-        """Every how many samples a figure draws a point."""
-        return max(1, math.ceil(len(self.time_s) / FIGURE_POINTS))
 
 
 def _model(meta: dict):

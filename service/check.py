@@ -3,7 +3,7 @@
 records one), the backend and its bus budget, the voltages, the control socket and the
 telemetry file; and every reason ``beamctl run`` would refuse to start, each in one line.
 
-The same set-up functions as the service (service/setup.py) build what the service would build,
+The same set-up functions as the service (assembly/run.py) build what the service would build,
 short of what changes the world: the HAL is built but not opened, the control socket is looked
 at (a service answering there would make the run refuse) but not bound, the telemetry file's
 folder is checked but nothing is written.
@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from beamctl.assembly.run import build_hal, check_voltage_range, load_gain_table, load_service_config
 from beamctl.common.outputs import OutputPathError, check_new_file
 from beamctl.config.schema import ConfigError
 from beamctl.gains.robust import robust_text
@@ -22,7 +23,6 @@ from beamctl.hal.base import HalError
 from beamctl.hal.can_backend import socketcan_problem
 from beamctl.rt.controller import Controller
 from beamctl.service.control import ControlError, default_socket_path, socket_place
-from beamctl.service.setup import build_hal, check_voltage_range, load_gain_table, load_service_config
 
 TELEMETRY_DEFAULT = "beamctl-%Y%m%d-%H%M%S.btl"
 

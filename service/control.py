@@ -15,7 +15,7 @@ at most 64 KiB)::
 ``status`` holds the state, the fault and its reason, whether the stacks are at bias, the
 load-cell reading in N, the cycles run, and the gain table's path and SHA-256. A command is
 answered once the loop has decided it (within a few cycles); ``gains`` once the table has
-also been read and checked, which takes seconds the first time (service/setup.py
+also been read and checked, which takes seconds the first time (service/swaps.py
 ``TableSwaps``): a client allows it two minutes. A request that cannot be read (not UTF-8,
 not JSON, too long, an unknown command, nothing within the read time-out) is answered
 ``ok: false`` saying why, and the server goes on serving.

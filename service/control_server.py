@@ -46,8 +46,8 @@ class ControlServer:
     nothing but its deadline) and answers status and unreadable requests itself; a second
     thread takes the commands one at a time: it loads a gain table, posts the command to the
     loop and waits for the outcome. ``prepare_table(path)`` loads and checks a gain table for
-    the running service and returns it prepared for the controller (service/setup.py
-    ``table_for_swap``), raising ValueError (a ConfigError) with why it was refused; ``log``
+    the running service and returns it prepared for the controller (service/swaps.py
+    ``TableSwaps.prepare``), raising ValueError (a ConfigError) with why it was refused; ``log``
     takes one line per command and its outcome, and per refused request.
     """
 

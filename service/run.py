@@ -21,6 +21,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from beamctl.assembly import live as live_view
+from beamctl.assembly.run import ServiceConfig, build_hal, check_voltage_range, load_gain_table
 from beamctl.common.signals import stop_on_signals
 from beamctl.gains.table import GainTable
 from beamctl.hal.base import HalBase, HalError
@@ -28,11 +30,10 @@ from beamctl.rt import realtime
 from beamctl.rt.controller import Controller
 from beamctl.rt.loop import ControlLoop, OperatorCommand, RunResult, StopRequest
 from beamctl.rt.telemetry import TelemetryWriter
-from beamctl.service import live as live_view
 from beamctl.service.control import ControlError, default_socket_path
 from beamctl.service.control_server import ControlServer
 from beamctl.service.sdnotify import Notifier
-from beamctl.service.setup import ServiceConfig, TableSwaps, build_hal, check_voltage_range, load_gain_table
+from beamctl.service.swaps import TableSwaps
 
 
 class ServiceError(Exception):

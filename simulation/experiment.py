@@ -36,6 +36,16 @@ from pathlib import Path
 
 import numpy as np
 
+from beamctl.assembly import live as live_view
+from beamctl.assembly.run import (
+    ServiceConfig,
+    build_plant,
+    load_gain_table,
+    plant_geometry,
+    plant_parameters,
+    plant_settings,
+    service_config,
+)
 from beamctl.common.signals import Interrupted
 from beamctl.config.schema import (
     ConfigError,
@@ -57,16 +67,6 @@ from beamctl.rt.config import ALLOCATION_MODES
 from beamctl.rt.controller import Controller
 from beamctl.rt.loop import ControlLoop, StopRequest
 from beamctl.rt.telemetry import TelemetryWriter
-from beamctl.service import live as live_view
-from beamctl.service.setup import (
-    ServiceConfig,
-    build_plant,
-    load_gain_table,
-    plant_geometry,
-    plant_parameters,
-    plant_settings,
-    service_config,
-)
 from beamctl.simulation.simkernel import Accelerator, RunMonitor
 
 MODES = ("uncontrolled", "interpolate", "paper")

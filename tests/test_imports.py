@@ -1,18 +1,21 @@
 """How the rooms import each other: no import circle among the product's modules, no import
 inside a function to dodge one, and no room importing the command line.
 
-The graph: an edge from a module to every beamctl module it imports at module level (imports
-under ``if TYPE_CHECKING:`` are for type checkers only and are left out). ``from beamctl.x
+The graph: an edge from a module to every beamctl module it imports, anywhere in its source
+(module level, inside a function, under ``if TYPE_CHECKING:``): a circle through any of them is
+one a reader follows round. ``from beamctl.x
 import a`` is an edge to ``beamctl.x.a`` when that is a module, else to ``beamctl.x`` itself (the
 names its ``__init__`` holds). A package's ``__init__`` importing its own modules to re-export
 them is not a circle unless one of those modules imports names from the package."""
 
 import ast
+import re
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-ROOMS = ("config", "models", "gains", "rt", "hal", "common", "simulation", "identification", "service",
-         "reports", "bench", "tools")
+# every room the package installs (pyproject.toml's package-dir)
+ROOMS = tuple(sorted(p.parent.name for p in ROOT.glob("*/__init__.py")
+                     if p.parent.name not in ("tests", "docs")))
 # The command line defers its imports until main() runs, so that a Ctrl-C while numpy and scipy
 # load (about a second) still ends in one line, and `beamctl ctl` answers without loading them.
 DEFERRED = {"tools/cli.py"}
@@ -42,15 +45,18 @@ def _targets(node: ast.AST) -> list[str]:
 
 
 def _imports(path: Path) -> tuple[set[str], list[str]]:
-    """(beamctl modules imported at module level, 'line: module' of those imported in a function)."""
+    """(beamctl modules imported at module level outside ``if TYPE_CHECKING:``, 'line: module' of
+    those imported in a function, every beamctl module imported anywhere)."""
     tree = ast.parse(path.read_text(), str(path))
     top: set[str] = set()
     inner: list[str] = []
+    every: set[str] = set()
 
     def visit(node: ast.AST, in_function: bool, type_checking: bool) -> None:
         for child in ast.iter_child_nodes(node):
             if isinstance(child, (ast.Import, ast.ImportFrom)):
                 targets = _targets(child)
+                every.update(targets)
                 if in_function:
                     inner.extend(f"{child.lineno}: {t}" for t in targets)
                 elif not type_checking:
@@ -62,7 +68,7 @@ def _imports(path: Path) -> tuple[set[str], list[str]]:
             visit(child, function, checking)
 
     visit(tree, False, False)
-    return top, inner
+    return top, inner, every
 
 
 GRAPH = {name: _imports(path) for name, path in MODULES.items()}
@@ -106,7 +112,7 @@ def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 
 
 def test_no_import_circle_among_the_product_s_modules():
-    graph = {name: top for name, (top, _) in GRAPH.items()}
+    graph = {name: every for name, (_, _, every) in GRAPH.items()}
     cycles = _cycles(graph)
     assert not cycles, f"modules that import each other (directly or round a circle): {cycles}"
 
@@ -118,16 +124,33 @@ def test_the_checker_sees_a_circle():
 
 
 def test_no_import_inside_a_function_but_where_the_command_line_defers_them():
-    inner = {str(MODULES[name].relative_to(ROOT)): lines for name, (_, lines) in GRAPH.items() if lines}
+    inner = {str(MODULES[name].relative_to(ROOT)): lines for name, (_, lines, _) in GRAPH.items() if lines}
     unexpected = {path: lines for path, lines in inner.items() if path not in DEFERRED}
     assert not unexpected, f"beamctl modules imported inside functions (import them at the top): {unexpected}"
 
 
 def test_no_room_imports_the_command_line():
     offenders = {}
-    for name, (top, inner) in GRAPH.items():
+    for name, (top, inner, _) in GRAPH.items():
         found = sorted({t for t in top if t.startswith("beamctl.tools")}
                        | {i for i in inner if ": beamctl.tools" in i})
         if found and not name.startswith("beamctl.tools"):
             offenders[name] = found
     assert not offenders, f"library rooms importing tools/ (the command line only): {offenders}"
+
+
+def test_only_the_lab_service_and_its_commands_import_the_service():
+    """How a run is put together lives in assembly/; the lab service (service/) is one of its
+    users, and only the command line's service commands (tools/) reach into it."""
+    offenders = {name: sorted(t for t in every if t.startswith("beamctl.service"))
+                 for name, (_, _, every) in GRAPH.items()
+                 if not name.startswith(("beamctl.service", "beamctl.tools"))}
+    offenders = {k: v for k, v in offenders.items() if v}
+    assert not offenders, f"rooms other than service/ and tools/ importing the lab service: {offenders}"
+
+
+def test_every_installed_room_is_in_the_graph():
+    text = (ROOT / "pyproject.toml").read_text()
+    section = text.split("[tool.setuptools.package-dir]", 1)[1].split("\n[", 1)[0]
+    dirs = sorted(re.findall(r'^"beamctl\.\w+" = "(\w+)"', section, re.M))
+    assert dirs == sorted(ROOMS), f"pyproject.toml installs {dirs}, the import checks read {sorted(ROOMS)}"

@@ -10,8 +10,9 @@ TEST_COMMAND = "pip install -e '.[test]' && pytest"
 DOCS_COMMAND = "pip install -e '.[docs]' && mkdocs build --strict -f docs/mkdocs.yml"
 WHEEL_CHECK = ".ci/wheel-check \"$work\""
 README_MAX_LINES = 250
-FOLDERS = ("config", "models", "gains", "rt", "hal", "common", "simulation", "identification", "service",
-           "reports", "bench", "tools")
+# the rooms pyproject.toml installs as beamctl.<room>
+FOLDERS = tuple(sorted(p.parent.name for p in ROOT.glob("*/__init__.py")
+                       if p.parent.name not in ("tests", "docs")))
 
 
 def test_ci_runs_exactly_the_readme_test_command():

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from beamctl.assembly.run import load_model_file, service_config
 from beamctl.commission.workflow import stack_authority
 from beamctl.common.outputs import check_dir, check_file, write_text
 from beamctl.config.schema import ConfigError, read_yaml
@@ -24,7 +25,6 @@ from beamctl.models.fit import (
     fit,
 )
 from beamctl.reports import plots
-from beamctl.service.setup import load_model_file, service_config
 from beamctl.tools import argtypes
 from beamctl.tools.progress import ProgressBar
 

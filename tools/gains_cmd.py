@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from beamctl.assembly.run import load_model_file
 from beamctl.common.outputs import check_dir, check_file, replacing, write_text
 from beamctl.config.schema import ConfigError
 from beamctl.gains.build import build_lqg_table, build_table, closed_loop_checks, with_robust
@@ -28,7 +29,6 @@ from beamctl.gains.robust import (
 from beamctl.gains.table import GainTable, changed_file_message, load_table, write_table
 from beamctl.models import build_model
 from beamctl.reports import plots
-from beamctl.service.setup import load_model_file
 from beamctl.simulation import stall
 from beamctl.simulation.experiment import UNLIMITED_STACKS, rig_scenario
 from beamctl.tools import argtypes

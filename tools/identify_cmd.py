@@ -5,12 +5,12 @@ from __future__ import annotations
 import argparse
 import json
 
+from beamctl.assembly.run import load_gain_table, load_service_config
 from beamctl.common.signals import stop_on_signals
 from beamctl.identification.excitation import SIGNALS, SUPPORT_INPUTS
 from beamctl.identification.frf_files import check_frf_out, write_frf
 from beamctl.identification.identify import IdentificationError, IdentifySettings, identify
 from beamctl.models.measured import resonances
-from beamctl.service.setup import load_gain_table, load_service_config
 from beamctl.tools import argtypes
 from beamctl.tools.progress import ProgressBar
 

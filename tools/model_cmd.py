@@ -8,6 +8,7 @@ import json
 
 import numpy as np
 
+from beamctl.assembly.run import load_model_file
 from beamctl.common.outputs import check_dir
 from beamctl.config.schema import ConfigError
 from beamctl.identification.fit_files import load_fitted
@@ -16,7 +17,6 @@ from beamctl.models import build_model, critical_load, eigenfrequencies, reduce
 from beamctl.models.fe import FEModel
 from beamctl.models.modal import ModalModel
 from beamctl.reports import plots
-from beamctl.service.setup import load_model_file
 from beamctl.tools import coverage_cmd, fit_cmd
 
 TABLE_LOADS_N = (0, 500, 1000, 1500, 2000, 2500, 3000)

@@ -12,6 +12,7 @@ import threading
 import time
 from pathlib import Path
 
+from beamctl.assembly.run import build_plant, load_gain_table, load_service_config, plant_geometry
 from beamctl.common.outputs import check_file, write_text
 from beamctl.config.schema import ConfigError
 from beamctl.gains.defaults import default_table_path
@@ -24,7 +25,6 @@ from beamctl.hal.dbc import Contract
 from beamctl.hal.emulator import CanPlantEmulator
 from beamctl.rt import realtime
 from beamctl.rt.config import Realtime
-from beamctl.service.setup import build_plant, load_gain_table, load_service_config, plant_geometry
 from beamctl.tools.argtypes import positive, seconds
 
 

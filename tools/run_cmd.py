@@ -21,11 +21,12 @@ import json
 import sys
 from pathlib import Path
 
+from beamctl.assembly import live as live_view
+from beamctl.assembly.run import load_service_config
 from beamctl.common.outputs import check_file, check_new_file
 from beamctl.rt.live import check_socket_path
-from beamctl.service import live as live_view
+from beamctl.service.live import add_live_argument
 from beamctl.service.run import Service, ServiceError, ServiceResult
-from beamctl.service.setup import load_service_config
 from beamctl.tools.argtypes import seconds
 
 
@@ -53,7 +54,7 @@ def add_parser(sub) -> None:
                         "$BEAMCTL_CONTROL_SOCKET, /run/beamctl/control.sock, $XDG_RUNTIME_DIR/beamctl/"
                         "control.sock or /tmp/beamctl-UID/control.sock)")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
-    live_view.add_live_argument(p)
+    add_live_argument(p)
     p.set_defaults(run=run)
 
 

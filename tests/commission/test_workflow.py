@@ -210,8 +210,8 @@ def _measurement(load, static, k=3.0, source="frf.npz"):
 
 
 def test_the_stacks_step_leaves_out_what_it_cannot_use_naming_it_and_never_fails():
+    from beamctl.assembly.run import service_config
     from beamctl.commission.workflow import stack_authority
-    from beamctl.service.setup import service_config
 
     cfg, params = service_config({}), load_parameters()
     good = [_measurement(1000.0, {"strain": [1e-6, -1e-6, 1e-6, -1e-6]}, source="frf_1000N.npz"),
@@ -235,8 +235,8 @@ def test_the_stacks_step_leaves_out_what_it_cannot_use_naming_it_and_never_fails
 
 
 def test_without_a_fitted_force_constant_the_measurements_own_is_taken_as_the_fit_takes_it():
+    from beamctl.assembly.run import service_config
     from beamctl.commission.workflow import stack_authority
-    from beamctl.service.setup import service_config
 
     data = [_measurement(f, {"strain": [1e-6 * f / 1000] * 4}, k=3.3) for f in (1000.0, 2000.0)]
     result = stack_authority(service_config({}), load_parameters(), None, data)
@@ -247,8 +247,8 @@ def test_forces_recorded_with_the_controller_s_force_constant_are_taken_at_the_f
     """A closed-loop measurement records k_config (V - bias); the stacks give k_fitted (V - bias):
     the same voltages, so the same fraction of the swing whichever constant the file was
     measured with."""
+    from beamctl.assembly.run import service_config
     from beamctl.commission.workflow import stack_authority
-    from beamctl.service.setup import service_config
 
     cfg, params = service_config({}), load_parameters()
     volts = {1000.0: np.array([13.0, -8.0, 13.0, -8.0]), 2000.0: np.array([29.0, -18.0, 29.0, -18.0])}

@@ -226,7 +226,7 @@ class CanRig:
 
 
 def service_backends(monkeypatch, emulator: CanPlantEmulator) -> RigClock:
-    """Make the CAN backends a command builds (service/setup.py ``build_hal``, which takes
+    """Make the CAN backends a command builds (assembly/run.py ``build_hal``, which takes
     ``CanBackend`` from hal/can_backend.py when it runs) rig backends of ``emulator`` on a
     ``RigClock`` of their own, which is returned: they wait for its samples while it runs, and an
     answer takes no time. The command's loop keeps its own clock: it only ever reads it for a

@@ -7,6 +7,7 @@ import signal
 import numpy as np
 import pytest
 
+from beamctl.assembly.run import load_gain_table, service_config
 from beamctl.common.signals import Interrupted, stop_on_signals
 from beamctl.config.schema import ConfigError
 from beamctl.hal.sim import SimBackend
@@ -15,7 +16,6 @@ from beamctl.models import build_model, load_parameters, parameters_from_dict
 from beamctl.models.fit import FitError, FitSettings, fit
 from beamctl.models.measured import PLANE_PAIRS, resonances
 from beamctl.models.plant import Plant, plant_config
-from beamctl.service.setup import load_gain_table, service_config
 
 # The rig of the acceptance: its own beam differs from Table 1 (kr x0.8, modal damping x1.5,
 # E x1.02) and its stacks give 3.3 N/V where the controller believes 3.0 N/V; the strain noise of

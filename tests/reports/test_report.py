@@ -8,6 +8,7 @@ import struct
 import numpy as np
 import pytest
 
+from beamctl.assembly.run import build_plant, load_gain_table, plant_geometry, service_config
 from beamctl.gains.defaults import paper_table_path
 from beamctl.hal.sim import SimBackend
 from beamctl.models import build_model, load_parameters
@@ -17,7 +18,6 @@ from beamctl.rt.controller import RECORD_COLUMNS, Controller
 from beamctl.rt.loop import ControlLoop
 from beamctl.rt.safety import Fault, State
 from beamctl.rt.telemetry import MAGIC, TelemetryWriter, read_telemetry
-from beamctl.service.setup import build_plant, load_gain_table, plant_geometry, service_config
 from beamctl.tools.cli import main
 
 SENSOR_HIGH_N = 1200.0

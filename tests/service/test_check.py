@@ -6,11 +6,11 @@ from dataclasses import replace
 
 import yaml
 
+from beamctl.assembly.run import service_config
 from beamctl.gains.defaults import default_table_path
 from beamctl.gains.table import load_table, write_table
 from beamctl.service.check import check_config
 from beamctl.service.run import Service
-from beamctl.service.setup import service_config
 from beamctl.tools.cli import main
 
 RECORD = {"worst_ratio": 1.1007, "onset_N": 3521.0, "critical_load_N": 3199.0, "censored": False,

@@ -7,13 +7,13 @@ import time
 import numpy as np
 import pytest
 
+from beamctl.assembly.run import service_config
 from beamctl.gains.defaults import paper_table_path
 from beamctl.rt.controller import COL
 from beamctl.rt.safety import State
 from beamctl.rt.telemetry import read_telemetry
 from beamctl.service.control import ControlError, request
 from beamctl.service.run import Service, ServiceError
-from beamctl.service.setup import service_config
 
 DEADLINE_S = 30.0       # for a state to be reached on a slow shared machine
 V = slice(COL["voltage_a1_V"], COL["voltage_a1_V"] + 6)

@@ -7,6 +7,7 @@ import signal
 import numpy as np
 import pytest
 
+from beamctl.assembly.run import load_gain_table, plant_parameters
 from beamctl.common.signals import Interrupted, stop_on_signals
 from beamctl.config.schema import ConfigError
 from beamctl.models import build_model, critical_load, load_parameters
@@ -15,7 +16,6 @@ from beamctl.reports import plots
 from beamctl.rt.controller import COL
 from beamctl.rt.safety import State
 from beamctl.rt.telemetry import read_telemetry
-from beamctl.service.setup import load_gain_table, plant_parameters
 from beamctl.simulation.experiment import (
     BOW_AMPLITUDE_M,
     direction_at,
@@ -139,7 +139,7 @@ def test_bad_scenario_is_refused_naming_the_key(tmp_path, capsys, data, key):
     assert key in capsys.readouterr().err
     with pytest.raises(ConfigError):
         cfg, _ = experiment_config(data)
-        from beamctl.service.setup import build_plant, load_gain_table
+        from beamctl.assembly.run import build_plant, load_gain_table
 
         build_plant(cfg, load_gain_table(cfg))
 

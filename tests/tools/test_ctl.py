@@ -321,10 +321,11 @@ def test_a_table_swap_is_read_off_the_service_and_checked_as_at_a_start(tmp_path
     field; a good one comes back prepared for the controller; ``close`` ends the reader."""
     import dataclasses
 
+    from beamctl.assembly.run import build_hal, load_gain_table, load_service_config
     from beamctl.gains.table import write_table
     from beamctl.models.iochain import IOChain
     from beamctl.rt.controller import Controller
-    from beamctl.service.setup import TableSwaps, build_hal, load_gain_table, load_service_config
+    from beamctl.service.swaps import TableSwaps
 
     cfg = dataclasses.replace(load_service_config(None), table_path=paper_table_path())
     table = load_gain_table(cfg)

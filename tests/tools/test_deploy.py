@@ -3,7 +3,7 @@
 import configparser
 from pathlib import Path
 
-from beamctl.service.setup import load_service_config
+from beamctl.assembly.run import load_service_config
 
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
 

@@ -124,8 +124,8 @@ def test_the_robust_check_reports_the_worst_rig_it_found_as_json(robust_run):
 def test_the_worst_rig_is_written_as_a_scenario_of_the_experiment(robust_run):
     """The scenario names the rig's own beam and delay, and stacks that do not limit: the
     controller believes 4 x 3 N/V, and the rig's own stacks give as much (a stack gain of 1)."""
+    from beamctl.assembly.run import plant_parameters
     from beamctl.models import load_parameters
-    from beamctl.service.setup import plant_parameters
     from beamctl.simulation.experiment import experiment_config
 
     _, report, _, where = robust_run

@@ -7,9 +7,9 @@ import pytest
 import scipy.io
 import yaml
 
+from beamctl.assembly.run import load_model_file, service_config
 from beamctl.identification.frf_files import read_frf
 from beamctl.models import build_model, critical_load
-from beamctl.service.setup import load_model_file, service_config
 from beamctl.tools.cli import main
 from tests.identification.test_identify import RIG
 from tests.processes import beamctl, interrupt_when
