@@ -89,9 +89,11 @@ CONTROLLER_DEFAULTS: dict[str, Any] = {
         "load_range_n": [-200.0, 5000.0],  # load-cell range; the gain table's range applies too
         # Ride-through: the samples the stacks may hold one voltage (a stall: samples missing, a silence)
         # (more: STALE_INPUT), the answer budget (an answer sent later than this many periods
-        # after its sample arrived is late) and the late answers in a row tolerated (more:
-        # LATE_ANSWERS). null: the limits of the gain table's ride-through analysis, computed
-        # when the table was built (gains/ridethrough.py); a value may tighten them, never loosen.
+        # after its sample arrived is late; twice its margin over the design's delay, the delay the
+        # loop tolerates, and an answer later than that held the stacks stale) and such answers in
+        # a row tolerated (more: LATE_ANSWERS). null: the limits of the gain table's ride-through
+        # analysis, computed when the table was built (gains/ridethrough.py); a value may tighten
+        # them, never loosen.
         "stale_periods": None,
         "answer_budget_periods": None,
         "late_answer_streak": None,
