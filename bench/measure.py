@@ -242,8 +242,7 @@ def live_view_timing(cycles: int = 12_000, rounds: int = 5) -> dict:
     datagrams = {case: [0, 0] for case in LIVE_CASES}
     with tempfile.TemporaryDirectory(prefix="bb", dir="/tmp") as tmp:
         attached, stalled = os.path.join(tmp, "attached.sock"), os.path.join(tmp, "stalled.sock")
-        cli = "import sys; from beamctl.tools.cli import main; sys.exit(main())"
-        monitor = subprocess.Popen([sys.executable, "-c", cli, "monitor", "--port", "0", "--live", attached],
+        monitor = subprocess.Popen([sys.executable, "-c", CLI, "monitor", "--port", "0", "--live", attached],
                                    stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
         page = None
         never_read = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
@@ -473,6 +472,43 @@ def offline_timing(repeats: int = 3) -> dict:
     med = {key: float(np.median([r[key] for r in rounds]))
            for key in ("loop_us", "kernel_cold_us", "kernel_warm_us", "ratio_cold", "ratio_warm")}
     return {"rounds": rounds, "median": med, "compile_or_cache_load_s": compile_s}
+
+
+# the command line as a process of its own, as a user starts it
+CLI = "import sys; from beamctl.tools.cli import main; sys.exit(main())"
+# the commands ``command_times`` times: (name, arguments; {out}: a file in a folder of the run's)
+COMMANDS = (("gains build --no-robust", ("gains", "build", "--no-robust", "--out", "{out}/table.yaml")),
+            ("experiment", ("experiment", "--out", "{out}/experiment")))
+
+
+def command_times(rounds: int = 3, progress=None) -> dict:
+    """Wall seconds of whole commands (``COMMANDS``), each started as a user starts it (a fresh
+    process: imports, compiled code from its cache, the work, the files written), the commands
+    taken in turn ``rounds`` times after one warm-up round (which fills the caches a first
+    start compiles), so that a slow stretch of the machine falls on all alike: per command the
+    runs, median, least and most."""
+    names = [name for name, _ in COMMANDS]
+    runs: dict[str, list[float]] = {name: [] for name in names}
+    total = (rounds + 1) * len(COMMANDS)
+    with tempfile.TemporaryDirectory(prefix="bench-commands-") as tmp:
+        for r in range(rounds + 1):
+            for k, (name, args) in enumerate(COMMANDS):
+                if progress:
+                    progress(r * len(COMMANDS) + k, total,
+                             f"{'warm-up' if r == 0 else f'round {r}/{rounds}'}: {name}")
+                argv = [a.format(out=tmp) for a in args]
+                start = time.perf_counter()
+                done = subprocess.run([sys.executable, "-c", CLI, *argv], stdout=subprocess.DEVNULL,
+                                      stderr=subprocess.PIPE, text=True, check=False)
+                elapsed = time.perf_counter() - start
+                if done.returncode != 0:
+                    last = (done.stderr.strip().splitlines() or ["no message"])[-1]
+                    raise RuntimeError(f"`beamctl {' '.join(argv)}` ended with exit status "
+                                       f"{done.returncode}: {last}")
+                if r > 0:
+                    runs[name].append(elapsed)
+    return {name: {"runs_s": [round(t, 3) for t in ts], "median_s": float(np.median(ts)),
+                   "min_s": min(ts), "max_s": max(ts)} for name, ts in runs.items()}
 
 
 def gains_build_time() -> float:

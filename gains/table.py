@@ -329,7 +329,7 @@ class _FlowList(list):
     about ten times faster (config.schema.parse_yaml reads such a sequence of numbers as JSON)."""
 
 
-class _TableDumper(yaml.SafeDumper):
+class _TableDumper(getattr(yaml, "CSafeDumper", yaml.SafeDumper)):  # libyaml's emitter where built
     pass
 
 

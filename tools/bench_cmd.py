@@ -6,10 +6,12 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 
 from beamctl.bench.measure import (
     LIVE_CASES,
     can_latency,
+    command_times,
     gains_build_time,
     live_view_timing,
     offline_timing,
@@ -56,9 +58,13 @@ def add_parser(sub) -> None:
                    help="only the offline simulation: the experiment's run through the loop and the "
                         "compiled kernel, per-sample cost and ratio")
     p.add_argument("--repeat", type=number(low=1, integer=True), default=3,
-                   help="rounds of --offline (default 3)")
+                   help="rounds of --offline and --commands (default 3)")
     p.add_argument("--live", action="store_true",
                    help="only the loop's timing with and without a live view (beamctl monitor)")
+    p.add_argument("--commands", action="store_true",
+                   help="only whole commands, each a process of its own as a user starts it: `beamctl "
+                        "gains build --no-robust` and `beamctl experiment`, in turn, --repeat rounds after "
+                        "a warm-up (default 3; about 3 minutes here), median, least and most")
     p.set_defaults(run=run)
 
 
@@ -83,6 +89,22 @@ def run(args: argparse.Namespace) -> int:
             print(json.dumps(result, indent=1))
         else:
             print_offline(result)
+        return 0
+    if args.commands:
+        with ProgressBar("bench") as bar:
+            try:
+                times = command_times(args.repeat, progress=bar)
+            except RuntimeError as exc:     # a command timed ended in an error: which, and why
+                bar.close()
+                print(f"beamctl bench: {exc}", file=sys.stderr)
+                return 1
+            bar.close()
+        if args.json:
+            print(json.dumps({"commands": times}, indent=1))
+        else:
+            print(f"whole commands, wall time, median of {args.repeat} after a warm-up (least, most):")
+            for name, t in times.items():
+                print(f"  beamctl {name:24s} {t['median_s']:6.2f} s  ({t['min_s']:.2f}, {t['max_s']:.2f})")
         return 0
     if args.live:
         lv = live_view_timing()
