@@ -46,7 +46,8 @@ DOCS = Path(__file__).resolve().parent
 ROOT = DOCS.parent
 MEANINGS = DOCS / "configuration-meanings.yaml"
 MEASURED = DOCS / "measured"
-BENCH_FILES = {"bench": "bench.json", "offline": "bench-offline.json", "about": "about.json"}
+BENCH_FILES = {"bench": "bench.json", "offline": "bench-offline.json", "commands": "bench-commands.json",
+               "about": "about.json"}
 
 log = logging.getLogger("mkdocs.hooks.beamctl")
 _problems: list[str] = []
@@ -338,11 +339,13 @@ def _table(columns: tuple[str, ...], rows: list[tuple[str, ...]]) -> list[str]:
 def bench_page() -> str:
     """The measured figures of docs/measured/ as Markdown."""
     bench, offline, about = _load("bench"), _load("offline"), _load("about")
+    commands = _load("commands")
     out: list[str] = []
     if about:
         out += [f"Measured on {about.get('date', '?')}, on {_get(about, 'machine/description')}; beamctl "
                 f"{about.get('beamctl', '?')}, commit {about.get('commit', '?')}.", ""]
-        runs = [(f"`docs/measured/{r.get('file')}`", f"`{r.get('command')}`", str(r.get("started", "?")),
+        runs = [(f"`docs/measured/{r.get('file')}`", f"`{r.get('command')}`",
+                 str(r.get("started", "?")) + (f", commit {r['commit']}" if r.get("commit") else ""),
                  f"{_n(r.get('wall_s'))} s", f"{r.get('load_before', '?')} / {r.get('load_after', '?')}")
                 for r in about.get("runs", [])]
         out += _table(("file", "command", "started", "wall time", "load average before / after"), runs)
@@ -393,6 +396,15 @@ def bench_page() -> str:
                      f"x{_n(med.get('ratio_cold'))} / x{_n(med.get('ratio_warm'))}", "", ""))
         out += _table(("round", "loop", "kernel, cold", "kernel, warm", "ratio cold / warm", "samples",
                        "held to 1 mm at (loop / kernel)"), rows) + [""]
+    if commands:
+        out += ["## `beamctl bench --commands`", "",
+                "Whole commands as a user starts them, each a process of its own (imports, compiled code "
+                "from its cache, the work, the files written), taken in turn after a warm-up round; wall "
+                "time:", ""]
+        rows = [(f"`beamctl {name}`", f"{_n(t.get('median_s'), 2)} s",
+                 f"{_n(t.get('min_s'), 2)} to {_n(t.get('max_s'), 2)} s", str(len(t.get("runs_s", []))))
+                for name, t in (_get(commands, "commands") or {}).items()]
+        out += _table(("command", "median", "least to most", "rounds"), rows) + [""]
     return "\n".join(out)
 
 
@@ -424,7 +436,7 @@ def _git(*args: str) -> str:
 
 
 def measure() -> None:
-    """Run ``beamctl bench --json`` and ``beamctl bench --offline --json`` one after the other and
+    """Run ``beamctl bench --json``, ``--offline --json`` and ``--commands --json`` one after another and
     write their output, and when and where they ran, to docs/measured/."""
     import time
     from importlib.metadata import version
@@ -435,7 +447,7 @@ def measure() -> None:
         commit += " (with uncommitted changes in the working tree)"
     about = {"date": datetime.date.today().isoformat(), "machine": _machine(), "beamctl": version("beamctl"),
              "commit": commit, "runs": []}
-    for name, args in (("bench", []), ("offline", ["--offline"])):
+    for name, args in (("bench", []), ("offline", ["--offline"]), ("commands", ["--commands"])):
         command = ["beamctl", "bench", *args, "--json"]
         run = {"file": BENCH_FILES[name], "command": " ".join(command), "load_before": _loadavg(),
                "started": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")}
