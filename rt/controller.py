@@ -80,7 +80,8 @@ LEGACY_GAP_LIMIT, LEGACY_BUDGET_PERIODS = 5, 0.5
 # the moving spreads of the ride-through follow the signals with this time constant
 SPREAD_TIME_S = 0.1
 # the excursion the loop shows beyond its means is held at its peak and decays with this time
-# constant: a stall's recovery at 3300 N is over within about 10 ms (simulation/stall.py)
+# constant: a stall's recovery at 3300 N rings at about 7 ms and is over within 20 ms
+# (simulation/stall.py), so that the envelope holds over its swings
 EXCURSION_TIME_S = 0.01
 # a sample enters the moving statistics within k spreads of the mean (a recovery's transient does
 # not inflate them for long after), and within at least these (strain, V): a quarter of the

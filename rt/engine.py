@@ -351,10 +351,9 @@ def _stats_start(buf, iv, fv, mats):
 
 def _stats_update(buf, iv, fv, mats):
     """One controlled sample into the moving statistics (exponential, coefficient
-    P_STAT_ALPHA; a deviation beyond k spreads, or the floor where that is less, enters as
-    that, so that a recovery's
-    transient, which the excursion covers while it lasts, does not inflate the spreads for
-    long after it), and into the excursion; then the live limits."""
+    P_STAT_ALPHA; a deviation beyond k spreads, or beyond the floor where that is larger, enters
+    as that: a recovery's transient, which the excursion covers while it lasts, does not inflate
+    the spreads for long after it) and into the excursion; then the live limits."""
     a = fv[P_STAT_ALPHA]
     k = fv[P_K_SIGMA]
     decay = fv[P_EXCURSION_DECAY]
