@@ -72,6 +72,13 @@ def _imports(path: Path) -> tuple[set[str], list[str]]:
 
 
 GRAPH = {name: _imports(path) for name, path in MODULES.items()}
+# the command line imports each command's module by name when that command runs (tools/cli.py
+# ``COMMANDS``): those are edges of the graph too
+_CLI = "beamctl.tools.cli"
+_named = ast.literal_eval(next(
+    node.value for node in ast.parse(MODULES[_CLI].read_text()).body
+    if isinstance(node, ast.Assign) and any(getattr(t, "id", "") == "COMMANDS" for t in node.targets)))
+GRAPH[_CLI][2].update(f"beamctl.tools.{m}" for m in _named.values())
 
 
 def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
@@ -147,6 +154,12 @@ def test_only_the_lab_service_and_its_commands_import_the_service():
                  if not name.startswith(("beamctl.service", "beamctl.tools"))}
     offenders = {k: v for k, v in offenders.items() if v}
     assert not offenders, f"rooms other than service/ and tools/ importing the lab service: {offenders}"
+
+
+def test_the_command_line_s_modules_by_name_are_in_the_graph():
+    missing = sorted(m for m in GRAPH[_CLI][2] if m not in MODULES)
+    assert not missing, f"tools/cli.py COMMANDS names modules that do not exist: {missing}"
+    assert len(GRAPH[_CLI][2]) > 10, "the command line's command modules were not read into the graph"
 
 
 def test_every_installed_room_is_in_the_graph():
