@@ -87,6 +87,16 @@ EXCURSION_TIME_S = 0.01
 # not inflate them for long after), and within at least these (strain, V): a quarter of the
 # gauges' 0.2 ue noise, a tenth of the stacks' stationary 0.2 V spread at 3300 N
 SPREAD_CLIP_FLOOR = (5e-8, 0.02)
+# the let-go: a stall, or a streak of stale answers, faults once it is longer than the gap whose
+# growth the headroom allows over the limit's bound (k spreads, or the excursion) taken at this
+# many sigma instead of k (k / this times the growth the limit allows): where the recovery's
+# expected peak reaches the strain or the voltage limit, the beam is more likely lost than held.
+# Up to the live limit a stall is survived with k sigma to spare; between the two it is ridden
+# through and recorded: letting go sooner holds no beam past its critical load (the stacks at bias
+# do not), the stacks stay clamped within their range either way, and once the samples come back
+# the supervisor sees what the beam did (strain limit, saturation). Measured against the survival
+# edge in the time domain: simulation/stall.py, tests/simulation/test_stall.py.
+LET_GO_SIGMA = 1.0
 # a start allows the growth of this (the moving variances begin at the headroom over k times it)
 START_GROWTH = 10.0
 
@@ -400,6 +410,7 @@ class Controller:
         fv[e.P_ALPHA], fv[e.P_HALF_BAND] = p.alpha, p.half_band_n
         fv[e.P_FIRST], fv[e.P_LAST] = p.first_n, p.last_n
         fv[e.P_K_SIGMA] = p.limits.confidence_sigma
+        fv[e.P_LET_GO_GROWTH] = max(p.limits.confidence_sigma / LET_GO_SIGMA, 1.0)
         fv[e.P_C1:e.P_C1 + 2] = p.mode1_strain
         fv[e.P_GAP_CAP] = min(p.limits.gap_cap, self._gap_cap)
         fv[e.P_LATE_CAP] = p.limits.late_cap
@@ -496,8 +507,14 @@ class Controller:
 
     @property
     def gap_limit(self) -> float:
-        """The live ride-through limit in samples (gains/ridethrough.py, rt/engine.py)."""
+        """The live ride-through limit in samples (gains/ridethrough.py, rt/engine.py): a stall
+        up to it is survived with k sigma to spare."""
         return float(self.fv[e.X_LIMIT])
+
+    @property
+    def let_go(self) -> float:
+        """The live let-go in samples (``LET_GO_SIGMA``): a stall longer faults STALE_INPUT."""
+        return float(self.fv[e.X_LET_GO])
 
     def warm(self) -> float:
         """Make everything the loop's cycle calls ready before it arms: every entry point of

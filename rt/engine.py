@@ -159,7 +159,11 @@ P_CLIP_FLOOR = 87
 # extra delay its loop stays stable with (the table's delay search); an answer later than the
 # budget is late, and only one later than this holds the stacks stale
 P_TOLERATED_S = 89
-N_FV = 90
+# the let-go: the growth allowed (deflection, voltage) P_LET_GO_GROWTH times the limit's (the
+# bound at the let-go's sigma: k / that sigma), and the gap it allows (samples; past it a stall or
+# a streak of stale answers faults)
+X_ALLOWED_LET_GO, X_LET_GO, P_LET_GO_GROWTH = 90, 92, 93
+N_FV = 94
 
 # Scratch after x_c in ``buf``: a plane's gathered signals (6 + n), a product's result (n + 4).
 # ``V_SPLIT`` 1: the compensator's two bending planes do not couple and their
@@ -242,13 +246,32 @@ def _trip(buf, iv, fv, fault, value, limit, channel):
 
 
 def gap_allowed(growth, o, grid, g0, n, allowed_q, allowed_v):
-    """The longest gap of the grid (``grid[g0:g0 + n]``) whose growth (deflection at
-    ``growth[o:o + n]``, voltage after it) is within what the headroom allows: 0 when not even
-    the first."""
+    """The longest gap (samples) of the grid (``grid[g0:g0 + n]``) whose growth (deflection at
+    ``growth[o:o + n]``, voltage after it) is within what the headroom allows, and between the
+    last grid gap allowed and the first not, the gap where each output's growth, interpolated
+    linearly in its logarithm (a gap's growth is close to exponential in its length), reaches what
+    is allowed: 0 when not even the first is allowed, the grid's end when all are."""
     best = 0.0
     for i in range(n):
-        if growth[o + i] > allowed_q or growth[o + n + i] > allowed_v:
-            break
+        gq = growth[o + i]
+        gv = growth[o + n + i]
+        if gq > allowed_q or gv > allowed_v:
+            if i == 0:
+                return 0.0
+            f = 1.0
+            pq = growth[o + i - 1]
+            pv = growth[o + n + i - 1]
+            if gq > allowed_q and pq > 0.0:
+                fq = math.log(allowed_q / pq) / math.log(gq / pq) if gq > pq else 0.0
+                if fq < f:
+                    f = fq
+            if gv > allowed_v and pv > 0.0:
+                fv_ = math.log(allowed_v / pv) / math.log(gv / pv) if gv > pv else 0.0
+                if fv_ < f:
+                    f = fv_
+            if f < 0.0:
+                f = 0.0
+            return best + f * (grid[g0 + i] - best)
         best = grid[g0 + i]
     return best
 
@@ -257,7 +280,7 @@ def _allowed(buf, fv):
     """The growth the headroom allows, deflection and voltage (gains/ridethrough.py): the
     headroom over k times the spread, from the moving means and variances, or over the excursion
     the loop shows now where that is larger (a recovery under way: a gap that starts there grows
-    from it)."""
+    from it); at the let-go, P_LET_GO_GROWTH times that (the bound at its sigma)."""
     k = fv[P_K_SIGMA]
     sq = 0.0
     for p in range(2):
@@ -290,13 +313,19 @@ def _allowed(buf, fv):
         av = 0.0
     fv[X_ALLOWED] = aq
     fv[X_ALLOWED + 1] = av
+    fv[X_ALLOWED_LET_GO] = aq * fv[P_LET_GO_GROWTH]
+    fv[X_ALLOWED_LET_GO + 1] = av * fv[P_LET_GO_GROWTH]
     buf[I_SPREAD_Q] = sq
     buf[I_SPREAD_V] = sv
 
 
 def _live_limit(buf, iv, fv, mats):
     """The live ride-through limit (samples) of the grid interval in use, from the growth the
-    headroom allows now; capped by the DAQ's silence and the configuration."""
+    headroom allows now at k sigma, and the let-go, from the growth it allows at the let-go's
+    sigma (never below the limit); both capped by the DAQ's silence and the configuration. A
+    stall within the limit is survived with k sigma to spare; one past the let-go faults; one
+    between is ridden through (the beam is more likely held than lost: letting go of it sooner
+    could only lose it, and the supervisor watches what it does once the samples come back)."""
     _allowed(buf, fv)
     # the growth's interval: between the analysed loads around the filtered load
     i = iv[V_GINDEX]
@@ -311,12 +340,18 @@ def _live_limit(buf, iv, fv, mats):
     n = iv[V_N_GRID]
     o = iv[O_GROWTH] + 2 * n * i
     best = gap_allowed(mats, o, mats, iv[O_GRID], n, fv[X_ALLOWED], fv[X_ALLOWED + 1])
+    go = gap_allowed(mats, o, mats, iv[O_GRID], n, fv[X_ALLOWED_LET_GO], fv[X_ALLOWED_LET_GO + 1])
+    if go < best:
+        go = best
     if best > fv[P_GAP_CAP]:
         best = fv[P_GAP_CAP]
+    if go > fv[P_GAP_CAP]:
+        go = fv[P_GAP_CAP]
     fv[X_LIMIT] = best
-    iv[V_GAP_LIMIT] = int(best)
+    fv[X_LET_GO] = go
+    iv[V_GAP_LIMIT] = int(go)
     late = fv[P_LATE_CAP]
-    iv[V_LATE_LIMIT] = int(best if best < late else late)
+    iv[V_LATE_LIMIT] = int(go if go < late else late)
     buf[I_GAP_LIMIT] = best
 
 
@@ -811,8 +846,8 @@ def cycle(buf, iv, fv, mats, sample):
             if held > 0.0 or not held == held:
                 # the gap is bridged by catching up (``_control``, ``_catch_up``): the
                 # compensator steps once per sample missed, the integral stays
-                if not held <= fv[X_LIMIT]:
-                    _trip(buf, iv, fv, F_STALE_INPUT, held, fv[X_LIMIT], -1)
+                if not held <= fv[X_LET_GO]:
+                    _trip(buf, iv, fv, F_STALE_INPUT, held, fv[X_LET_GO], -1)
                 elif iv[V_STATE] == S_RUNNING and iv[V_LAW] == 1 and missed > 0:
                     flags += FLAG_BRIDGED
                     buf[I_BRIDGED] = missed

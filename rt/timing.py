@@ -57,13 +57,15 @@ class StageTimer:
 
 class StallLog:
     """The stalls ridden through (samples the stacks held the last answer before a sample, as
-    the engine counts them): how many, the longest and the live limit then, and the least room
-    any stall left under its limit."""
+    the engine counts them): how many, how many of them longer than the live limit then (ridden
+    through up to the let-go: survived, but not with the limit's confidence), the longest and the
+    live limit then, and the least room any stall left under its limit."""
 
-    __slots__ = ("count", "longest", "limit_at_longest", "least_room", "limit_at_least_room")
+    __slots__ = ("count", "beyond_limit", "longest", "limit_at_longest", "least_room", "limit_at_least_room")
 
     def __init__(self) -> None:
         self.count = 0
+        self.beyond_limit = 0
         self.longest = 0.0
         self.limit_at_longest = math.nan
         self.least_room = math.inf
@@ -71,13 +73,15 @@ class StallLog:
 
     def record(self, held: float, limit: float) -> None:
         self.count += 1
+        if held > limit:
+            self.beyond_limit += 1
         if held > self.longest:
             self.longest, self.limit_at_longest = held, limit
         if limit - held < self.least_room:
             self.least_room, self.limit_at_least_room = limit - held, limit
 
     def summary(self) -> dict:
-        return {"count": self.count, "longest_samples": self.longest,
+        return {"count": self.count, "beyond_limit": self.beyond_limit, "longest_samples": self.longest,
                 "limit_at_longest_samples": self.limit_at_longest,
                 "least_room_samples": None if self.count == 0 else self.least_room,
                 "limit_at_least_room_samples": self.limit_at_least_room}

@@ -18,6 +18,8 @@ its stacks' force per volt ``force_gain`` times what the controller believes.
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,7 +47,7 @@ AFTER_S = 0.2             # followed this long after the stall (the recovery)
 @dataclass(frozen=True)
 class StallOutcome:
     """What one stall did: ``survived`` (no fault, no stack at its range's end, the strain
-    within the limit), the live limit when it began (samples), the largest strain's fraction of
+    within the limit), the live limit and let-go when it began (samples), the largest strain's fraction of
     the supervisor's limit and the largest stack excursion from the operating point (V) during
     the stall and after it, the fault (name, or "")."""
 
@@ -57,6 +59,7 @@ class StallOutcome:
     voltage_excursion_v: float
     saturated: bool
     fault: str
+    let_go_samples: float = math.nan
 
 
 class _Lockstep:
@@ -188,12 +191,12 @@ class StallRig:
             return True
 
         bench.bring(settle_s)
-        limit = c.gap_limit
+        limit, let_go = c.gap_limit, c.let_go
         first, between = before
         if first > 0 and not answer(max(between, 1), stall(first)):
             gap = 0
         else:
-            limit = c.gap_limit
+            limit, let_go = c.gap_limit, c.let_go
             if gap is None:
                 gap = self.stall_samples(limit)
             answer(int(round(after_s * self.rate)) + 1, stall(gap))
@@ -202,7 +205,8 @@ class StallRig:
         survived = not fault and not saturated and fraction < 1.0
         return StallOutcome(load_n=float(load_n), gap_samples=int(gap), survived=survived,
                             limit_samples=float(limit), strain_fraction=fraction,
-                            voltage_excursion_v=swing, saturated=saturated, fault=fault)
+                            voltage_excursion_v=swing, saturated=saturated, fault=fault,
+                            let_go_samples=float(let_go))
 
     def loss(self, load_n: float, every: int, duration_s: float, after_s: float = AFTER_S) -> StallOutcome:
         """A loss that persists: for ``duration_s`` at ``load_n`` only every ``every``-th sample

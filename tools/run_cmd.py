@@ -127,10 +127,12 @@ def _print_summary(args: argparse.Namespace, cfg, service: Service, outcome: Ser
         stalls = t.get("stalls", {})
         if stalls.get("count"):
             ms = 1e3 / table.design.sample_rate_hz
-            print(f"  stalls ridden through: {stalls['count']}, "
+            beyond = stalls.get("beyond_limit", 0)
+            print(f"  stalls ridden through: {stalls['count']}"
+                  f"{f' ({beyond} past the live limit, within the let-go)' if beyond else ''}, "
                   f"the longest {stalls['longest_samples'] * ms:.2f} ms "
                   f"(the live limit then {stalls['limit_at_longest_samples'] * ms:.2f} ms), the least room "
-                  f"under the limit {stalls['least_room_samples'] * ms:.2f} ms")
+                  f"under the limit {stalls['least_room_samples'] * ms:.2f} ms (negative: past it)")
         tel = result.telemetry
         kept = "" if tel.get("mode", "full") == "full" else f" ({tel['mode']}: of {tel['received']} samples)"
         print(f"  telemetry: {tel.get('written', 0)} records{kept}, {tel.get('dropped', 0)} dropped, "

@@ -391,9 +391,11 @@ def test_the_growth_of_a_gap_is_the_time_domain_s_at_3300_n(paper_model, shipped
     assert q.max() > 1.5, "a 40-sample gap at 3300 N grows the deflection's spread"
 
 
-def test_the_engine_s_limit_is_the_longest_grid_gap_the_headroom_allows(shipped):
+def test_the_engine_s_limit_is_the_longest_gap_the_headroom_allows(shipped):
     """gap_allowed (the engine's function): the longest grid gap N with k g(N) spread <=
-    headroom for both outputs, against a direct scan of the table's curves."""
+    headroom for both outputs, against a direct scan of the table's curves, and on from it to
+    where the growth interpolated linearly in its logarithm reaches what is allowed (never as far
+    as the next grid gap, whose growth is not allowed)."""
     from beamctl.rt.engine import gap_allowed
 
     rt = shipped.ride_through
@@ -406,8 +408,19 @@ def test_the_engine_s_limit_is_the_longest_grid_gap_the_headroom_allows(shipped)
             # the grid's curves do not fall: what is allowed is a prefix of the grid
             direct = int(max(within)) if within else 0
             assert len(within) == (list(grid).index(direct) + 1 if within else 0)
-            got = int(gap_allowed(curves.ravel(), 0, grid, 0, len(grid), aq, av))
-            assert got == direct, (rt.loads_n[e], aq, av, got, direct)
+            got = gap_allowed(curves.ravel(), 0, grid, 0, len(grid), aq, av)
+            case = (rt.loads_n[e], aq, av, got, direct)
+            if not within or direct == grid[-1]:
+                assert got == direct, case
+                continue
+            i = len(within)
+            assert direct <= got < grid[i], case
+            # at ``got`` the log-interpolated growth of the output that binds is what is allowed
+            f = (got - grid[i - 1]) / (grid[i] - grid[i - 1])
+            at = [np.exp((1 - f) * np.log(curves[0, o, i - 1]) + f * np.log(curves[0, o, i]))
+                  for o in (0, 1)]
+            assert at[0] <= aq * (1 + 1e-9) and at[1] <= av * (1 + 1e-9), case
+            assert np.isclose(at[0], aq, rtol=1e-9) or np.isclose(at[1], av, rtol=1e-9), case
 
 
 # ---------------------------------------------------------------------------------------------

@@ -18,7 +18,7 @@ A new sample:
 2. (RUNNING only) the stall ridden through: the stacks held the last answer for the samples the
    source skipped before this one (``sample.missed``) or for the silence before it, whichever is
    longer (floor(time since the previous sample / period - 0.5)); a stall longer than the live
-   limit faults STALE_INPUT; otherwise it is bridged by catching up: before the normal step the
+   let-go (below) faults STALE_INPUT; otherwise it is bridged by catching up: before the normal step the
    compensator's state makes one step per sample missed (at most ``CATCH_UP_SAMPLES``) on the
    newest strains and the forces the stacks held, x_c <- A x_c + B y + E u_applied; the integral
    stays as it was.
@@ -33,7 +33,7 @@ A new sample:
 
 No sample (``step(None, silent_periods)``): the voltages hold. ``silent_periods`` is the time
 since the last sample in periods (None: one period per call since the last sample); a RUNNING
-controller faults STALE_INPUT once floor(silent_periods) exceeds the live limit's whole samples
+controller faults STALE_INPUT once floor(silent_periods) exceeds the let-go's whole samples
 (or the silence is not a number). FAULT and
 STOPPING advance the ramp.
 
@@ -45,14 +45,18 @@ controller (LATE_ANSWERS); any other answer ends the streak; NaN (not measured) 
 reaches the configured streak; ``cycle_on_time()`` ends it.
 
 The ride-through (gains/ridethrough.py, ``rt.controller.ride_through_limits``). The live limit is
-the longest gap of the table's grid whose growth (of the interval between the analysed loads that
+the longest gap of the table's grid (and on, interpolated linearly in the growth's logarithm up to
+the next grid gap) whose growth (of the interval between the analysed loads that
 holds the filtered load) k x g x spread keeps within the headroom, for the deflection and the
 voltages both, capped by the configuration: spread_q = the larger over the planes of sqrt(var q_1)
 times mode 1's strain at the gauges, headroom_q = strain limit - the largest |mean strain|;
 spread_v = the largest sqrt(var V_i), headroom_v = the least of V_max - mean V_i, mean V_i - V_min.
 The means and variances are exponential (coefficient 1 - exp(-T / 0.1 s)) over the controlled
 samples; a start sets the means where the signals are and the variances so that a growth of 10 is
-allowed. The late-answer limit is the live limit capped by the configuration; the answer budget
+allowed. The let-go is the same at LET_GO_SIGMA for k (never below the live limit, capped
+alike; the growth allowed k / LET_GO_SIGMA times the limit's): a stall of more samples than it
+faults STALE_INPUT, and the late-answer limit is the
+let-go capped by the configuration; the answer budget
 the table's per grid point (the lesser of a grid interval's ends), tightened by the configuration.
 
 Faults latch: the first wins until an operator re-arms, the state becomes FAULT and the
@@ -71,6 +75,7 @@ import numpy as np
 from beamctl.rt.config import ControllerConfig
 from beamctl.rt.controller import (
     EXCURSION_TIME_S,
+    LET_GO_SIGMA,
     SPREAD_CLIP_FLOOR,
     SPREAD_TIME_S,
     START_GROWTH,
@@ -243,17 +248,18 @@ class ReferenceController:
         self.v_mean, self.v_var = [0.0] * 6, [0.0] * 6
         self.excursion_q = self.excursion_v = 0.0
         self.live_limit = 0.0
+        self.let_go = 0.0
 
     # the ride-through limits now
     @property
     def gap_limit(self) -> float:
-        """The live limit: a stall of more samples than this faults STALE_INPUT."""
+        """The live limit: a stall up to it is survived with k sigma to spare."""
         return self.live_limit
 
     @property
     def late_limit(self) -> int:
         """Late answers in a row that are ridden through; more fault LATE_ANSWERS."""
-        return int(min(self.live_limit, self.late_cap))
+        return int(min(self.let_go, self.late_cap))
 
     @property
     def answer_budget_s(self) -> float:
@@ -314,6 +320,11 @@ class ReferenceController:
         spread_v = max(math.sqrt(v) for v in self.v_var)
         headroom_q = self.strain_limit - max(abs(y) for y in self.y_mean)
         headroom_v = min(min(self.v_max - m, m - self.v_min) for m in self.v_mean)
+        r[COL["spread_deflection"]] = spread_q
+        r[COL["spread_voltage_V"]] = spread_v
+        interval = max(bisect.bisect_right(self.growth_loads, self.filtered) - 1, 0)
+        curves = self.growth[interval, 0]          # the one bridge: hold
+
         bound_q = max(self.sigma * spread_q, self.excursion_q)
         bound_v = max(self.sigma * spread_v, self.excursion_v)
         allowed_q = headroom_q / bound_q if bound_q > 0.0 else math.inf
@@ -322,16 +333,28 @@ class ReferenceController:
             allowed_q = 0.0
         if not headroom_v > 0.0:
             allowed_v = 0.0
-        r[COL["spread_deflection"]] = spread_q
-        r[COL["spread_voltage_V"]] = spread_v
-        interval = max(bisect.bisect_right(self.growth_loads, self.filtered) - 1, 0)
-        curves = self.growth[interval, 0]          # the one bridge: hold
-        limit = 0.0
-        for n, g_q, g_v in zip(self.gap_grid, curves[0], curves[1], strict=True):
-            if g_q > allowed_q or g_v > allowed_v:
-                break
-            limit = n
+
+        def longest(aq: float, av: float) -> float:
+            """The last grid gap allowed, then log-linearly on to where a growth reaches it."""
+            limit = 0.0
+            before = None
+            for n, g_q, g_v in zip(self.gap_grid, curves[0], curves[1], strict=True):
+                if g_q > aq or g_v > av:
+                    if before is None:
+                        return 0.0
+                    fractions = [1.0]
+                    for g, p, a in ((g_q, before[0], aq), (g_v, before[1], av)):
+                        if g > a and p > 0.0:
+                            fractions.append(math.log(a / p) / math.log(g / p) if g > p else 0.0)
+                    return limit + max(min(fractions), 0.0) * (n - limit)
+                limit = n
+                before = (g_q, g_v)
+            return limit
+
+        limit = longest(allowed_q, allowed_v)
+        growth = max(self.sigma / LET_GO_SIGMA, 1.0)
         self.live_limit = min(limit, self.gap_cap)
+        self.let_go = min(max(longest(growth * allowed_q, growth * allowed_v), limit), self.gap_cap)
         r[COL["gap_limit_samples"]] = self.live_limit
 
     # == lifecycle (every command carried out records the state and the fault) ====================
@@ -503,8 +526,8 @@ class ReferenceController:
             silent = self.silent_calls if silent_periods is None or silent_periods < 0 else silent_periods
             # the samples due in that time are missing: floor(silent) of them; a silence of the
             # limit's whole samples + 1 periods or more faults, and so does an endless or unknown one
-            if running and not silent < int(self.gap_limit) + 1:
-                self._trip(Fault.STALE_INPUT, silent, self.gap_limit)
+            if running and not silent < int(self.let_go) + 1:
+                self._trip(Fault.STALE_INPUT, silent, int(self.let_go))
         else:
             self.silent_calls = 0
             self.time = sample.timestamp
@@ -527,8 +550,8 @@ class ReferenceController:
                 if held > self.longest_gap:
                     self.longest_gap = int(min(held, CAP))
                 if held > 0.0 or held != held:
-                    if not held <= self.gap_limit:
-                        self._trip(Fault.STALE_INPUT, held, self.gap_limit)
+                    if not held <= self.let_go:
+                        self._trip(Fault.STALE_INPUT, held, self.let_go)
                     elif self.state == State.RUNNING and self.law and missed > 0:
                         # bridged by catching up (``_control``): x_c steps once per sample missed
                         flags |= BRIDGED
