@@ -19,7 +19,6 @@ its stacks' force per volt ``force_gain`` times what the controller believes.
 from __future__ import annotations
 
 import math
-
 from dataclasses import dataclass
 
 import numpy as np
