@@ -413,6 +413,7 @@ class Controller:
         fv[e.P_LET_GO_GROWTH] = max(p.limits.confidence_sigma / LET_GO_SIGMA, 1.0)
         fv[e.P_C1:e.P_C1 + 2] = p.mode1_strain
         fv[e.P_GAP_CAP] = min(p.limits.gap_cap, self._gap_cap)
+        fv[e.P_LET_GO_CAP] = p.limits.gap_cap
         fv[e.P_LATE_CAP] = p.limits.late_cap
         self._mats = mats
         self._buffer = buffer
@@ -498,8 +499,12 @@ class Controller:
 
     def cap_gap_limit(self, seconds: float | None) -> None:
         """The DAQ falls back to bias by itself after ``seconds`` without an answer (its silence
-        time-out; None: it does not): the live ride-through limit stays two samples short of it,
-        so that the controller, not the DAQ's fallback, decides."""
+        time-out; None: it does not): the live ride-through limit stays two samples short of it
+        (past it the stacks ramp toward bias: no longer held with the limit's confidence). The
+        let-go does not: a DAQ that fell back takes the controller's frames again when they come
+        (hal/beamctl.dbc), and a stall that long is one of a DAQ or a bus that was silent itself,
+        whose fallback the controller could not have pre-empted with frames of its own (it sends
+        only answers); what the beam did meanwhile the supervisor sees when the samples return."""
         if seconds is None or not seconds > 0:
             return
         self._gap_cap = max(float(np.floor(seconds / self.period_s)) - 2.0, 0.0)

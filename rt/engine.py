@@ -163,7 +163,10 @@ P_TOLERATED_S = 89
 # bound at the let-go's sigma: k / that sigma), and the gap it allows (samples; past it a stall or
 # a streak of stale answers faults)
 X_ALLOWED_LET_GO, X_LET_GO, P_LET_GO_GROWTH = 90, 92, 93
-N_FV = 94
+# the let-go's cap (samples): the configuration's and the grid's, not the DAQ's silence (a DAQ that
+# fell back to bias by itself takes the controller's frames again when they come)
+P_LET_GO_CAP = 94
+N_FV = 95
 
 # Scratch after x_c in ``buf``: a plane's gathered signals (6 + n), a product's result (n + 4).
 # ``V_SPLIT`` 1: the compensator's two bending planes do not couple and their
@@ -322,7 +325,8 @@ def _allowed(buf, fv):
 def _live_limit(buf, iv, fv, mats):
     """The live ride-through limit (samples) of the grid interval in use, from the growth the
     headroom allows now at k sigma, and the let-go, from the growth it allows at the let-go's
-    sigma (never below the limit); both capped by the DAQ's silence and the configuration. A
+    sigma (never below the limit); the limit capped by the DAQ's silence and the configuration,
+the let-go by the configuration. A
     stall within the limit is survived with k sigma to spare; one past the let-go faults; one
     between is ridden through (the beam is more likely held than lost: letting go of it sooner
     could only lose it, and the supervisor watches what it does once the samples come back)."""
@@ -345,8 +349,8 @@ def _live_limit(buf, iv, fv, mats):
         go = best
     if best > fv[P_GAP_CAP]:
         best = fv[P_GAP_CAP]
-    if go > fv[P_GAP_CAP]:
-        go = fv[P_GAP_CAP]
+    if go > fv[P_LET_GO_CAP]:
+        go = fv[P_LET_GO_CAP]
     fv[X_LIMIT] = best
     fv[X_LET_GO] = go
     iv[V_GAP_LIMIT] = int(go)

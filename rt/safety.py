@@ -117,8 +117,8 @@ class Supervisor:
             return (f"filtered load {value:.1f} N outside the table's [{self._safety.table_first_n:g}, "
                     f"{limit:g}] N")
         if fault == Fault.STALE_INPUT:
-            return (f"the stacks held a stale voltage for {value:.0f} samples; the live ride-through "
-                    f"limit was {limit:.0f}")
+            return (f"the stacks held a stale voltage for {value:.0f} samples; the live let-go was "
+                    f"{limit:.0f} (the ride-through limit {float(fv[e.X_LIMIT]):.0f})")
         if fault == Fault.OVERRUN_STREAK:
             return f"{value:.0f} overruns in a row"
         if fault == Fault.PERSISTENT_SATURATION:

@@ -155,7 +155,7 @@ class StallRig:
         if lift:
             o, n, gl = int(c.iv[e.O_GROWTH]), int(c.iv[e.V_N_GRID]), int(c.iv[e.V_N_GLOADS])
             c._mats[o:o + gl * 2 * n] = 1.0
-            c.fv[e.P_GAP_CAP] = c.fv[e.P_LATE_CAP] = np.inf
+            c.fv[e.P_GAP_CAP] = c.fv[e.P_LET_GO_CAP] = c.fv[e.P_LATE_CAP] = np.inf
         bench = _Lockstep(self, plant, c)
         sample, measure, apply = bench.sample, bench.measure, bench.apply
         strain_top, swing, saturated = 0.0, 0.0, False
