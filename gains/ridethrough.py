@@ -20,7 +20,10 @@ less each stack's mean). A gap of N is allowed while
     confidence_sigma x g_deflection(N) x spread_deflection <= strain headroom   and
     confidence_sigma x g_voltage(N) x spread_voltage       <= voltage headroom,
 
-and the live limit is the longest gap of the grid allowed. A rig with a larger spread, or less
+and the live limit is the longest gap allowed (of the grid, and on to where the growth,
+interpolated linearly in its logarithm towards the next grid gap, reaches what is allowed). The
+let-go, past which a stall faults, is the same at ``LET_GO_SIGMA`` (1) instead of k: the gap
+where the recovery's expected peak reaches the headroom. A rig with a larger spread, or less
 headroom (more load, a larger bow), gets a shorter limit; below the critical load the growth
 stays near 1 and the limit is the cap. The relative criterion of earlier tables ("the RMS at most
 doubles") is gone: a gap is lost when the beam or the stacks reach a limit, and the margin is the
@@ -113,8 +116,18 @@ from beamctl.rt.engine import CATCH_UP_SAMPLES, gap_allowed
 
 CONFIDENCE_SIGMA = 3.5      # the k of the k-sigma bound (one-sided 2.3e-4 at the recovery's peak, on
                             # spreads measured with the gauges' noise in them, which does not grow in a
-                            # gap: in the time domain the survival edge is 1.4 to 2.8 x the limit
+                            # gap: in the time domain the survival edge is 1.3 to 2.3 x the limit
                             # past Fx,cr on the nominal and the worst rig, `beamctl gains stalls`)
+# the let-go: a stall, or a streak of stale answers, faults once it is longer than the gap whose
+# growth the headroom allows over the limit's bound (k spreads, or the excursion) taken at this
+# many sigma instead of k (k / this times the growth the limit allows): where the recovery's
+# expected peak reaches the strain or the voltage limit, the beam is more likely lost than held.
+# Up to the live limit a stall is survived with k sigma to spare; between the two it is ridden
+# through and recorded: letting go sooner holds no beam past its critical load (the stacks at bias
+# do not), the stacks stay clamped within their range either way, and once the samples come back
+# the supervisor sees what the beam did (strain limit, saturation). Measured against the survival
+# edge in the time domain: simulation/stall.py, tests/simulation/test_stall.py.
+LET_GO_SIGMA = 1.0          # (rt/controller.py, rt/engine.py ``_live_limit``)
 GROWTH_CAP = 2.0e3          # a growth beyond this is stored as this: no headroom allows it (75 V over
                             # 3.5 x 0.05 V RMS is 429; 3200 ue over 3.5 x 0.5 ue 1830)
 SETTLED = 1.1               # the recovery is followed until nothing later exceeds max(peak, 1.1 x stationary)
@@ -218,13 +231,14 @@ class RideThrough:
             out[j] = self.growth[:, :, inside, :].max(axis=2)
         return out
 
-    def reference_limits(self, grid_loads: Sequence[float]) -> list[tuple[int, str]]:
-        """At each of ``grid_loads``: the live limit at the ``REFERENCE`` operating point in
-        samples, as the engine computes it there (rt/engine.py ``gap_allowed``, over the interval
-        of analysed loads the load starts), and the bridge."""
+    def reference_limits(self, grid_loads: Sequence[float], let_go: bool = False) -> list[tuple[int, str]]:
+        """At each of ``grid_loads``: the live limit (``let_go``: the let-go) at the ``REFERENCE``
+        operating point in samples, as the engine computes it there (rt/engine.py ``gap_allowed``,
+        over the interval of analysed loads the load starts), and the bridge."""
         k = self.confidence_sigma
-        allowed_q = REFERENCE["deflection_headroom"] / (k * REFERENCE["deflection_spread"])
-        allowed_v = REFERENCE["voltage_headroom_v"] / (k * REFERENCE["voltage_spread_v"])
+        more = max(k / LET_GO_SIGMA, 1.0) if let_go else 1.0
+        allowed_q = more * REFERENCE["deflection_headroom"] / (k * REFERENCE["deflection_spread"])
+        allowed_v = more * REFERENCE["voltage_headroom_v"] / (k * REFERENCE["voltage_spread_v"])
         grid = np.asarray(self.gap_grid_samples, dtype=float)
         breaks = np.unique(np.asarray(self.loads_n))
         growth = self.interval_growth(breaks)
@@ -241,15 +255,18 @@ class RideThrough:
     def reference_text(self, grid_loads: Sequence[float], sample_rate_hz: float) -> str:
         """What the reference operating point's limits are, and the limit per grid load in ms."""
         rows = self.reference_limits(grid_loads)
+        go = self.reference_limits(grid_loads, let_go=True)
         cap = self.gap_cap_samples
         parts = [f"{load:g} N {1e3 * n / sample_rate_hz:.1f}{'+' if n >= cap else ''}"
-                 for load, (n, _) in zip(grid_loads, rows, strict=True)]
+                 + (f" (let go {1e3 * m / sample_rate_hz:.1f})" if m > n else "")
+                 for load, (n, _), (m, _) in zip(grid_loads, rows, go, strict=True)]
         return ("ride-through per load in ms at the reference operating point (mode 1 spread "
                 f"{REFERENCE['deflection_spread'] * 1e6:g} ue at the gauges, "
                 f"{REFERENCE['deflection_headroom'] * 1e6:g} "
                 f"ue to the strain limit; stacks {REFERENCE['voltage_spread_v']:g} V RMS, "
                 f"{REFERENCE['voltage_headroom_v']:g} V to their range; the engine measures its own): "
-                + ", ".join(parts) + f" ('+': the grid's end, {1e3 * cap / sample_rate_hz:g} ms)")
+                + ", ".join(parts) + f" ('+': the grid's end, {1e3 * cap / sample_rate_hz:g} ms; let go: a "
+                "longer stall faults, where the recovery's expected peak reaches the headroom)")
 
     def describe(self, grid_loads: Sequence[float], sample_rate_hz: float) -> str:
         rows = self.reference_limits(grid_loads)

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from beamctl.config.schema import ConfigError
-from beamctl.gains.ridethrough import CONFIDENCE_SIGMA, DELAY_MARGIN, GROWTH_CAP
+from beamctl.gains.ridethrough import CONFIDENCE_SIGMA, DELAY_MARGIN, GROWTH_CAP, LET_GO_SIGMA
 from beamctl.gains.schedule import GainSchedule
 from beamctl.gains.table import GainTable
 from beamctl.hal.base import Sample
@@ -87,16 +87,6 @@ EXCURSION_TIME_S = 0.01
 # not inflate them for long after), and within at least these (strain, V): a quarter of the
 # gauges' 0.2 ue noise, a tenth of the stacks' stationary 0.2 V spread at 3300 N
 SPREAD_CLIP_FLOOR = (5e-8, 0.02)
-# the let-go: a stall, or a streak of stale answers, faults once it is longer than the gap whose
-# growth the headroom allows over the limit's bound (k spreads, or the excursion) taken at this
-# many sigma instead of k (k / this times the growth the limit allows): where the recovery's
-# expected peak reaches the strain or the voltage limit, the beam is more likely lost than held.
-# Up to the live limit a stall is survived with k sigma to spare; between the two it is ridden
-# through and recorded: letting go sooner holds no beam past its critical load (the stacks at bias
-# do not), the stacks stay clamped within their range either way, and once the samples come back
-# the supervisor sees what the beam did (strain limit, saturation). Measured against the survival
-# edge in the time domain: simulation/stall.py, tests/simulation/test_stall.py.
-LET_GO_SIGMA = 1.0
 # a start allows the growth of this (the moving variances begin at the headroom over k times it)
 START_GROWTH = 10.0
 
@@ -518,7 +508,8 @@ class Controller:
 
     @property
     def let_go(self) -> float:
-        """The live let-go in samples (``LET_GO_SIGMA``): a stall longer faults STALE_INPUT."""
+        """The live let-go in samples (gains/ridethrough.py ``LET_GO_SIGMA``): a longer stall
+        faults STALE_INPUT."""
         return float(self.fv[e.X_LET_GO])
 
     def warm(self) -> float:

@@ -9,8 +9,8 @@ Pacing:
   a simulated plant in simulated time) sets the rate. Each sample is answered by exactly one
   write; a read time-out writes only while the voltages ramp to bias (a backend whose answers
   pair with samples, CAN, sends nothing for it). When more samples are missing, in time measured
-  on the loop's clock, than the controller rides through (its gap limit), a running controller
-  faults.
+  on the loop's clock, than the controller rides through (its let-go, ``safety.gap_limit``), a
+  running controller faults.
 
 Each answer's age (the sample's arrival to the answer having been sent, where the HAL measures
 it) goes to the engine, which counts late answers against the answer budget, and is recorded

@@ -205,7 +205,7 @@ class Safety:
     @property
     def gap_limit(self) -> int:
         """Samples missing in a row that the loop rides through (more: STALE_INPUT): the live
-        let-go (rt/controller.py ``LET_GO_SIGMA``), never below the live ride-through limit."""
+        let-go (gains/ridethrough.py ``LET_GO_SIGMA``), never below the live ride-through limit."""
         return int(self.iv[e.V_GAP_LIMIT])
 
     @property

@@ -281,7 +281,8 @@ class EdgeRow:
     the time-domain survival edge (the shortest stall lost with the limit lifted; ``cap + 1``:
     none up to the cap, the cap being the stall faulted as a stopped DAQ), in samples of the
     rig's rate; ``held``: the rig is held at this load without a stall (where it is not, beyond
-    its loop's stability onset, the edge is 0)."""
+    its loop's stability onset, the edge is 0); ``let_go_samples``: the let-go then (a longer
+    stall faults)."""
 
     load_n: float
     limit_samples: float
@@ -289,6 +290,7 @@ class EdgeRow:
     cap_samples: int
     rate_hz: float
     held: bool = True
+    let_go_samples: float = math.nan
 
 
 def edges(stall_rig: StallRig, loads, progress=None) -> list[EdgeRow]:
@@ -300,15 +302,18 @@ def edges(stall_rig: StallRig, loads, progress=None) -> list[EdgeRow]:
         still = stall_rig.run(float(load), 0)       # no stall: is the rig held here at all?
         limit = stall_rig.stall_samples(still.limit_samples)
         edge = stall_rig.edge(float(load), cap, start=max(limit, 1)) if still.survived else 0
-        rows.append(EdgeRow(float(load), float(limit), int(edge), cap, stall_rig.rate, still.survived))
+        let_go = stall_rig.stall_samples(still.let_go_samples)
+        rows.append(EdgeRow(float(load), float(limit), int(edge), cap, stall_rig.rate, still.survived,
+                            float(let_go)))
         if progress:
-            said = f"limit {limit:g}, edge {edge} samples" if still.survived else "not held without a stall"
+            said = (f"limit {limit:g}, let-go {let_go:g}, edge {edge} samples" if still.survived
+                    else "not held without a stall")
             progress(i + 1, len(loads), f"{load:7.1f} N: {said}")
     return rows
 
 
 def edge_figure(curves: dict[str, list[EdgeRow]], path) -> None:
-    """Limit and survival edge (ms) versus load, one colour per rig; an edge beyond the cap is
+    """Limit, let-go and survival edge (ms) versus load, one colour per rig; an edge beyond the cap is
     drawn at the cap with an open marker; loads where a rig is not held are left out."""
     import matplotlib
 
@@ -323,14 +328,16 @@ def edge_figure(curves: dict[str, list[EdgeRow]], path) -> None:
         edge = [1e3 * min(r.edge_samples, r.cap_samples) / r.rate_hz for r in rows]
         beyond = [r.edge_samples > r.cap_samples for r in rows]
         ax.plot(loads, limit, "-o", color=colour, label=f"live limit, {name}")
+        let_go = [1e3 * r.let_go_samples / r.rate_hz for r in rows]
+        ax.plot(loads, let_go, ":", color=colour, label=f"let-go, {name}")
         ax.plot(loads, edge, "--", color=colour, label=f"survival edge, {name}")
         for x, y, b in zip(loads, edge, beyond, strict=True):
             ax.plot([x], [y], "^" if b else "s", color=colour, markerfacecolor="none" if b else colour)
     ax.set_yscale("log")
     ax.set_xlabel("axial load (N)")
     ax.set_ylabel("stall (ms)")
-    ax.set_title("stall ridden through (live limit) and the shortest lost (edge); "
-                 "open: none lost up to the cap")
+    ax.set_title("live limit: survived with 3.5 sigma to spare; let-go: faulted beyond;\n"
+                 "edge: the shortest stall lost (open marker: none lost up to the cap)")
     ax.title.set_fontsize(9)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)

@@ -513,6 +513,7 @@ def run_stalls(args: argparse.Namespace) -> int:
         stall.edge_figure(curves, plot)
     if args.json:
         print(json.dumps({name: [{"load_N": r.load_n, "limit_ms": 1e3 * r.limit_samples / r.rate_hz,
+                                  "let_go_ms": 1e3 * r.let_go_samples / r.rate_hz,
                                   "edge_ms": 1e3 * r.edge_samples / r.rate_hz,
                                   "edge_beyond_cap": r.edge_samples > r.cap_samples,
                                   "limit_samples": r.limit_samples, "edge_samples": r.edge_samples,
@@ -520,7 +521,8 @@ def run_stalls(args: argparse.Namespace) -> int:
                           for name, rows in curves.items()}, indent=1))
         return 0 if ok else 1
     for name, rows in curves.items():
-        print(f"{name}: load N, live limit ms, survival edge ms (the shortest stall lost), edge / limit")
+        print(f"{name}: load N, live limit ms, let-go ms (a longer stall faults), survival edge ms "
+              "(the shortest stall lost), edge / limit")
         for r in rows:
             if not r.held:
                 print(f"  {r.load_n:7.0f}  not held without a stall (beyond the loop's stability onset)")
@@ -528,7 +530,9 @@ def run_stalls(args: argparse.Namespace) -> int:
             limit, edge = 1e3 * r.limit_samples / r.rate_hz, 1e3 * r.edge_samples / r.rate_hz
             beyond = r.edge_samples > r.cap_samples
             ratio = "-" if beyond or r.limit_samples <= 0 else f"{r.edge_samples / r.limit_samples:.2f}"
-            print(f"  {r.load_n:7.0f} {limit:8.1f} {'>' if beyond else ' '}{edge:8.1f} {ratio:>6}")
+            let_go = 1e3 * r.let_go_samples / r.rate_hz
+            mark = ">" if beyond else " "
+            print(f"  {r.load_n:7.0f} {limit:8.1f} {let_go:8.1f} {mark}{edge:8.1f} {ratio:>6}")
     if plot:
         print(f"wrote {plot}")
     return 0 if ok else 1
