@@ -2,6 +2,7 @@
 status, never a traceback, never a half-written file."""
 
 import fcntl
+import os
 import signal
 import subprocess
 import sys
@@ -195,14 +196,17 @@ def test_a_reader_that_stops_early_ends_the_command_quietly(tmp_path):
     """``beamctl gains check | head``: exit 141 (the shell's status for SIGPIPE), no traceback."""
     from beamctl.gains.defaults import paper_table_path
 
-    process = beamctl("gains", "check", str(paper_table_path()), cwd=tmp_path)
-    # a one-page pipe: the check's ~7 kB table (the paper's: every load and midpoint, checked in
-    # a second) cannot all be written before this reader leaves
-    fcntl.fcntl(process.stdout.fileno(), fcntl.F_SETPIPE_SZ, 4096)
+    # a one-page pipe, made so before the command starts (shrunk after, a busy machine let the
+    # command write all of it into the default 64 kB first): the check's ~7 kB table (the paper's:
+    # every load and midpoint) cannot all be written before this reader leaves
+    read_end, write_end = os.pipe()
+    fcntl.fcntl(write_end, fcntl.F_SETPIPE_SZ, 4096)
     try:
-        assert process.stdout.read(10) == b"gain table"
+        process = beamctl("gains", "check", str(paper_table_path()), cwd=tmp_path, stdout=write_end)
     finally:
-        process.stdout.close()
+        os.close(write_end)
+    with open(read_end, "rb", buffering=0) as reader:
+        assert reader.read(10) == b"gain table"
     err = process.communicate(timeout=300)[1].decode()
     assert process.returncode == 141, err
     assert "Traceback" not in err and "BrokenPipeError" not in err and "Exception ignored" not in err, err
