@@ -11,6 +11,7 @@ import sys
 from beamctl.commission.workflow import STEPS, Commission, CommissionError, CommissionSettings, grid_of
 from beamctl.common.signals import stop_on_signals
 from beamctl.config.schema import ConfigError
+from beamctl.models.fit import DEFAULT_PARAMETERS
 from beamctl.tools import argtypes
 from beamctl.tools.progress import ProgressBar
 
@@ -38,8 +39,8 @@ def add_parser(sub) -> None:
                    "2 %%, one only roughly)")
     p.add_argument("--averages", type=argtypes.number(low=3, integer=True), default=8, metavar="A",
                    help="averaged excitation periods per input (default 8)")
-    p.add_argument("--params", default="E,kr,damping,force_constant", metavar="P,P,...",
-                   help="parameters to fit (default E,kr,damping,force_constant)")
+    p.add_argument("--params", default=",".join(DEFAULT_PARAMETERS), metavar="P,P,...",
+                   help=f"parameters to fit (default {','.join(DEFAULT_PARAMETERS)})")
     p.add_argument("--grid", metavar="START:STOP:STEP", help="the table's load grid in N (default: every "
                    "100 N to 1.2 x the fitted model's critical load, at most 4000 N)")
     p.add_argument("--no-robust", action="store_true", help="leave out the robust check (minutes)")

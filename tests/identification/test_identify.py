@@ -103,8 +103,12 @@ def test_the_fit_recovers_the_rig_s_own_parameters_within_the_issue_s_tolerances
         assert np.all(np.abs(fitted - truth) < allowed), (
             f"{key}: {fitted} vs {truth} beyond 4 standard errors {result.std_errors[key]}")
     assert result.cost < 0.1 * result.start_cost, "the fit explains most of what the start model missed"
-    assert "beam.youngs_modulus|supports.rotational_stiffness" in result.correlations, (
-        "E and kr are hard to separate from one load: the pair is reported")
+    # from one load the supports' stiffnesses are hard to separate: the fit names the group and
+    # what the data determine of it, far better than any one of them
+    tied = [c for c in result.combinations if "supports.rotational_stiffness" in c["names"]]
+    assert tied, f"kr's ties are not reported: {result.combinations}"
+    kr = result.std_errors["supports.rotational_stiffness"] / result.values["supports.rotational_stiffness"]
+    assert tied[0]["relative_std_error"] < 0.2 * kr, (tied[0], kr)
 
 
 def test_a_fit_stopped_before_it_converged_is_refused(measured):
