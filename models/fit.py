@@ -517,6 +517,9 @@ def _match_resonances(problem: Problem, x0: np.ndarray, stiff: list[int], peaks:
                            max_nfev=settings.max_evaluations)
     x = x0.copy()
     x[stiff] = np.clip(result.x, low, high)
+    # a move of nothing is none: least_squares starts its trust region at |x|, and a start a hair
+    # from zero would end it at once
+    x[np.abs(x - x0) < 1e-6] = x0[np.abs(x - x0) < 1e-6]
     return x
 
 
@@ -614,6 +617,10 @@ def _warnings(problem: Problem, values: dict[str, Any], std: dict[str, Any], cor
             out.append(f"{problem.names[n_i]} is {state}: +-{100 * sd / abs(v):.1f} % a "
                        f"standard error{tied}; fix what it is tied to from another measurement, or read "
                        f"the interval before designing on it")
+    loose = {problem.names[n_i] for n_i, (key, i) in enumerate(problem.slots) if key != GAUGES_KEY
+             and abs(std[key] if i is None else std[key][i])
+             > WEAK_RELATIVE_ERROR * abs(values[key] if i is None else values[key][i])}
     for c in combinations:
-        out.append(f"the data tie {', '.join(_short(n) for n in c['names'])} together: {c['text']}")
+        if loose & set(c["names"]):
+            out.append(f"the data tie {', '.join(_short(n) for n in c['names'])} together: {c['text']}")
     return out

@@ -65,7 +65,8 @@ def test_one_rig_identified_and_fitted_gives_errors_and_z_scores_that_the_summar
             assert math.isclose(cell["relative_error"], cell["value"] / cell["true"] - 1.0, rel_tol=1e-12)
             assert math.isclose(cell["z"], (cell["value"] - cell["true"]) / cell["std_error"], rel_tol=1e-12)
     summary = summarise(rows, SHORT)
-    assert set(summary["parameters"]) == {"E", "kr", "damping", "force_constant"}, "the fit's own defaults"
+    assert set(summary["parameters"]) == {"E", "kr", "kl", "kp", "damping", "force_constant"}, (
+        "the fit's own defaults")
     assert isinstance(row["warnings"], list) and row["misfit"] > 0
     damping = summary["parameters"]["damping"]
     cells = [c for n, c in row.items() if n.startswith("damping.ratios[")]
