@@ -12,6 +12,8 @@ from beamctl.commission.workflow import FLOOR, STATE, calibrated_box
 from beamctl.gains.robust import box_from_dict
 from beamctl.gains.table import load_table
 from beamctl.models import build_model, critical_load, load_parameters, parameters_from_dict
+from beamctl.models.analysis import fe_frequency_response
+from beamctl.models.measured import FrfData
 from beamctl.tools.cli import main
 from tests.processes import beamctl, interrupt_when
 
@@ -156,6 +158,52 @@ def test_a_parameter_not_fitted_keeps_box_b_s_range_in_the_calibrated_box():
     assert box["parameters"]["beam.youngs_modulus"] == {"factor": [0.97, 1.03]}, "E not fitted: +-3 %"
     assert calibrated_box({"damping.ratios": [0.0, 0.0]}, {"damping.ratios": [0.0, 0.0]})[
         "parameters"]["damping.ratios"] == {"factor": [0.7, 1.3]}, "no relative error to take: the floor"
+
+
+def test_a_fitted_parameter_the_data_leave_undetermined_keeps_the_prior_s_range():
+    """kl fitted to a tight-looking interval but undetermined by the data (it moves with kr and
+    kp along what they determine together): the box keeps box B's x[0.8, 1.2] for it, and says
+    which parameters were calibrated and which were not."""
+    from beamctl.commission.workflow import UNSEEN, calibration
+
+    fitted = {"supports.rotational_stiffness": 150.0, "supports.lateral_stiffness": 3.0e7}
+    errors = {"supports.rotational_stiffness": 0.1, "supports.lateral_stiffness": 3.0e4}
+    box = calibrated_box(fitted, errors, ["supports.lateral_stiffness"])
+    assert box["parameters"]["supports.lateral_stiffness"] == UNSEEN["supports.lateral_stiffness"]
+    assert box["parameters"]["supports.rotational_stiffness"]["factor"] == [0.9, 1.1], "calibrated: the floor"
+    how = calibration(fitted, ["supports.lateral_stiffness"])
+    assert how["supports.lateral_stiffness"].startswith("kept at the prior's range"), how
+    assert how["supports.rotational_stiffness"] == "calibrated from the fit", how
+    box_from_dict(box, load_parameters())
+
+
+def test_a_fit_that_does_not_explain_the_measurements_stops_commissioning_with_advice(rig, tmp_path,
+                                                                                    monkeypatch):
+    """A misfit of 40 (the model misses what the data show): nothing is calibrated on it; the
+    one line says what to free and what to check."""
+    from dataclasses import replace as with_
+
+    from beamctl.commission import workflow
+    from beamctl.commission.workflow import Commission, CommissionError, CommissionSettings
+
+    real_fit = workflow.fit
+
+    def poor_fit(*args, **kwargs):
+        return with_(real_fit(*args, **kwargs), misfit=40.0)
+
+    monkeypatch.setattr(workflow, "fit", poor_fit)
+    freqs = np.arange(10.0, 1201.0, 4.0)
+    g = fe_frequency_response(build_model(load_parameters()), 2000.0, freqs)
+    measured = FrfData(frequencies_hz=freqs, frf=g, coherence=np.full(g.shape, 0.99), load_n=2000.0,
+                       force_constant_n_per_v=3.0, settings={"identify": {"averages": 8}}, source="synthetic")
+    monkeypatch.setattr(workflow, "read_frf", lambda path: measured)
+    monkeypatch.setattr(Commission, "_frf_paths", lambda self: [tmp_path / "frf_2000N.npz"])
+    lines = []
+    c = Commission(rig, tmp_path / "out", CommissionSettings(averages=3, robust=False), log=lines.append)
+    with pytest.raises(CommissionError, match="residual is 40 x the data's noise") as caught:
+        c._fit()
+    assert "--params" in str(caught.value) and "gauge positions" in str(caught.value), caught.value
+    assert not (tmp_path / "out" / "fit.json").exists(), "nothing written to calibrate on"
 
 
 def test_the_default_grid_ends_where_a_design_can_hold_the_fitted_model():
