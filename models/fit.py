@@ -37,9 +37,15 @@ within an element, so the mesh moves them by up to 0.1 %; with correlated parame
 that moves the fit by percent. The fit is therefore polished on the mesh with twice the beam
 elements, from the solution on the model's own (the values, cost and Jacobian are then the finer
 mesh's; the fitted model keeps the start's mesh). The change is reported (``mesh_correction``)
-and added in quadrature to each standard error as the finer mesh's own uncertainty: deliberately
-conservative (over 20 simulated rigs on 71 nodes, the largest |z| of E and kr was 0.5), since the
-error does not shrink steadily with the mesh (it depends on where in its element a gauge lies).
+and, times MESH_UNCERTAINTY, added in quadrature to each standard error as the finer mesh's own
+uncertainty, since the error does not shrink steadily with the mesh (it depends on where in its
+element a gauge lies).
+
+Tied parameters: per group of parameters correlated beyond COMBINED_CORRELATION the product of
+their powers the data determine best is reported (``combinations``). The supports' stiffnesses
+(kr, kl, kp) are such a group: the strains see mostly one effective rotational stiffness. Each of
+them in a tie gets a standard error of at least TIED_RELATIVE_ERROR and is ``undetermined``: along
+the tie, the part of the residual that is not noise moves them further than the noise says.
 
 How sure it is: ``misfit`` is the residual over what the measured coherence and averages predict
 (1: the model explains the data down to their noise); ``warnings`` name a misfit above
