@@ -139,10 +139,11 @@ def calibrated_box(fitted: dict[str, Any], std_errors: dict[str, Any],
         errors = std_errors[key] if isinstance(std_errors[key], list) else [std_errors[key]]
         rel = max((abs(s / v) for s, v in zip(errors, values, strict=True) if v), default=0.0)
         half = max(INFLATION * Z_95 * rel, FLOOR[key])
+        low, high = 1.0 - half, 1.0 + half
         if any(n == key or n.startswith(key + "[") for n in undetermined):
-            low, high = UNSEEN[key]["factor"]
-            half = max(half, 1.0 - low, high - 1.0)
-        parameters[key] = {"factor": [round(max(1.0 - half, 0.05), 6), round(1.0 + half, 6)]}
+            prior_low, prior_high = UNSEEN[key]["factor"]
+            low, high = min(low, prior_low), max(high, prior_high)
+        parameters[key] = {"factor": [round(max(low, 0.05), 6), round(high, 6)]}
     return {"parameters": parameters}
 
 
@@ -153,7 +154,8 @@ def calibration(fitted: dict[str, Any], undetermined: Sequence[str]) -> dict[str
     for key in UNSEEN:
         if key in fitted and key in FLOOR:
             loose = [n for n in undetermined if n == key or n.startswith(key + "[")]
-            out[key] = (f"kept at the prior's range: the data leave {', '.join(loose)} undetermined" if loose
+            out[key] = (f"kept at the prior's range or wider: the data leave {', '.join(loose)} undetermined"
+                        if loose
                         else "calibrated from the fit")
         elif key in fitted:
             out[key] = "fitted; its range is the drift a rig has after identification"

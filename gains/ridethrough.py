@@ -112,15 +112,15 @@ from beamctl.models.iochain import (
     DelayedZOH,
     _gamma,  # the one matrix exponential of a ZOH
 )
-from beamctl.rt.engine import CATCH_UP_SAMPLES, gap_allowed
+from beamctl.rt.engine import CATCH_UP_SAMPLES, GROWTH_CAP, gap_allowed
 
 CONFIDENCE_SIGMA = 3.5      # the k of the k-sigma bound (one-sided 2.3e-4 at the recovery's peak, on
                             # spreads measured with the gauges' noise in them, which does not grow in a
                             # gap: in the time domain the survival edge is 1.3 to 2.3 x the limit
                             # past Fx,cr on the nominal and the worst rig, `beamctl gains stalls`)
 # the let-go: a stall, or a streak of stale answers, faults once it is longer than the gap whose
-# growth the headroom allows over the limit's bound (k spreads, or the excursion) taken at this
-# many sigma instead of k (k / this times the growth the limit allows): where the recovery's
+# growth the headroom allows over the spreads taken at this many sigma instead of k (or over the
+# excursion a recovery under way shows beyond the k spreads, whole): where the recovery's
 # expected peak reaches the strain or the voltage limit, the beam is more likely lost than held.
 # Up to the live limit a stall is survived with k sigma to spare; between the two it is ridden
 # through and recorded: letting go sooner holds no beam past its critical load (the stacks at bias
@@ -128,8 +128,9 @@ CONFIDENCE_SIGMA = 3.5      # the k of the k-sigma bound (one-sided 2.3e-4 at th
 # the supervisor sees what the beam did (strain limit, saturation). Measured against the survival
 # edge in the time domain: simulation/stall.py, tests/simulation/test_stall.py.
 LET_GO_SIGMA = 1.0          # (rt/controller.py, rt/engine.py ``_live_limit``)
-GROWTH_CAP = 2.0e3          # a growth beyond this is stored as this: no headroom allows it (75 V over
-                            # 3.5 x 0.05 V RMS is 429; 3200 ue over 3.5 x 0.5 ue 1830)
+# GROWTH_CAP (rt/engine.py, 2000): a growth beyond it is stored as it, and the engine never allows
+# it (at 3.5 sigma no headroom would: 75 V over 3.5 x 0.05 V RMS is 429; 3200 ue over 3.5 x 0.5 ue
+# 1830; at the let-go's 1 sigma one might, but a loop that far gone has diverged)
 SETTLED = 1.1               # the recovery is followed until nothing later exceeds max(peak, 1.1 x stationary)
 GAP_HORIZON_S = 0.1         # the gap grid ends at this long a gap: the DAQ has stopped, not paused
 DELAY_STEP_SAMPLES = 0.05   # grid of the extra output delay
@@ -236,9 +237,9 @@ class RideThrough:
         operating point in samples, as the engine computes it there (rt/engine.py ``gap_allowed``,
         over the interval of analysed loads the load starts), and the bridge."""
         k = self.confidence_sigma
-        more = max(k / LET_GO_SIGMA, 1.0) if let_go else 1.0
-        allowed_q = more * REFERENCE["deflection_headroom"] / (k * REFERENCE["deflection_spread"])
-        allowed_v = more * REFERENCE["voltage_headroom_v"] / (k * REFERENCE["voltage_spread_v"])
+        at = min(LET_GO_SIGMA, k) if let_go else k
+        allowed_q = REFERENCE["deflection_headroom"] / (at * REFERENCE["deflection_spread"])
+        allowed_v = REFERENCE["voltage_headroom_v"] / (at * REFERENCE["voltage_spread_v"])
         grid = np.asarray(self.gap_grid_samples, dtype=float)
         breaks = np.unique(np.asarray(self.loads_n))
         growth = self.interval_growth(breaks)

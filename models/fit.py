@@ -439,7 +439,7 @@ def fit(start: ModelParameters, data: Sequence[FrfData], settings: FitSettings =
     sd_data = np.sqrt(np.clip(np.diag(cov_x), 0.0, None))
     corr = cov_x / np.outer(sd_data, sd_data)          # how the data tie the parameters together
     sd_x = np.sqrt(sd_data ** 2 + (MESH_UNCERTAINTY * shift) ** 2)
-    combinations = _combinations(problem, cov_x, corr)
+    combinations = _combinations(problem, cov_x, corr, MESH_UNCERTAINTY * shift)
     # the supports' stiffnesses tied together: the data determine their combination, not each
     # (along the tie, what of the residual is not noise moves them beyond their intervals:
     # `beamctl model coverage --scatter-supports`, 20 rigs, kr 5 % off at 2.2 standard errors,
@@ -489,7 +489,8 @@ def resonance_start(problem: Problem, x0: np.ndarray, settings: FitSettings) -> 
     the model's peaks (raising one ratio, lowering the other, up to where the model refuses them)
     faster than by moving them; on a rig with supports 15 to 18 % stiffer and damping 0.57 x
     Table 1's, the fit from Table 1 ended there with the damping 3 x the rig's and a misfit of
-    140. ``x0`` unchanged where nothing is to be moved or no peak is found."""
+    140. The stiffness unknowns stay where none is free or too few peaks are found; the damping's
+    scan runs wherever the damping is free."""
     stiff = [n for n, (k, _) in enumerate(problem.slots) if k in STIFFNESS_KEYS]
     lo, hi = settings.band_hz
     peaks = []
@@ -580,11 +581,13 @@ def _short(name: str) -> str:
     return aliases.get(key, key) + (f"[{rest}" if rest else "")
 
 
-def _combinations(problem: Problem, cov_x: np.ndarray, corr: np.ndarray) -> list[dict[str, Any]]:
+def _combinations(problem: Problem, cov_x: np.ndarray, corr: np.ndarray,
+                  mesh: np.ndarray) -> list[dict[str, Any]]:
     """Groups of log-parameters the data tie together (chained |correlation| beyond
     COMBINED_CORRELATION; gauge offsets left out) and, per group, the product of powers of them
     the data determine best: the eigenvector of the group's covariance with the least variance
-    (exponents scaled so that the largest is 1; its standard error relative)."""
+    (exponents scaled so that the largest is 1; its standard error relative, the mesh's
+    uncertainty ``mesh`` of the log-parameters projected on it added)."""
     p = len(problem.names)
     logs = [i for i in range(p) if problem.slots[i][0] != GAUGES_KEY]
     group_of = {i: i for i in logs}
@@ -608,7 +611,7 @@ def _combinations(problem: Problem, cov_x: np.ndarray, corr: np.ndarray) -> list
         sub = cov_x[np.ix_(members, members)]
         lam, vec = np.linalg.eigh(sub)
         v = vec[:, 0] / np.abs(vec[:, 0]).max()
-        sd = math.sqrt(max(lam[0], 0.0)) / np.abs(vec[:, 0]).max()
+        sd = math.hypot(math.sqrt(max(lam[0], 0.0)) / np.abs(vec[:, 0]).max(), float(v @ mesh[members]))
         names = [problem.names[i] for i in members]
         text = " x ".join(f"{_short(n)}^{e:.2f}" for n, e in zip(names, v, strict=True) if abs(e) >= 0.005)
         out.append({"names": names, "exponents": [float(e) for e in v], "relative_std_error": float(sd),

@@ -159,10 +159,12 @@ P_CLIP_FLOOR = 87
 # extra delay its loop stays stable with (the table's delay search); an answer later than the
 # budget is late, and only one later than this holds the stacks stale
 P_TOLERATED_S = 89
-# the let-go: the growth allowed (deflection, voltage) P_LET_GO_GROWTH times the limit's (the
-# bound at the let-go's sigma: k / that sigma), and the gap it allows (samples; past it a stall or
-# a streak of stale answers faults)
-X_ALLOWED_LET_GO, X_LET_GO, P_LET_GO_GROWTH = 90, 92, 93
+# the let-go: the growth allowed (deflection, voltage) over the spreads at P_LET_GO_SIGMA, or the
+# excursion beyond k spreads where that is larger, the gap it allows (samples; past it a stall or
+# a streak of stale answers faults), and that sigma
+X_ALLOWED_LET_GO, X_LET_GO, P_LET_GO_SIGMA = 90, 92, 93
+# a growth the ride-through analysis stores as this diverged (gains/ridethrough.py): never allowed
+GROWTH_CAP = 2.0e3
 # the let-go's cap (samples): the configuration's and the grid's, not the DAQ's silence (a DAQ that
 # fell back to bias by itself takes the controller's frames again when they come)
 P_LET_GO_CAP = 94
@@ -253,26 +255,35 @@ def gap_allowed(growth, o, grid, g0, n, allowed_q, allowed_v):
     ``growth[o:o + n]``, voltage after it) is within what the headroom allows, and between the
     last grid gap allowed and the first not, the gap where each output's growth, interpolated
     linearly in its logarithm (a gap's growth is close to exponential in its length), reaches what
-    is allowed: 0 when not even the first is allowed, the grid's end when all are."""
+    is allowed: 0 when not even the first is allowed, the grid's end when all are. A growth at
+    GROWTH_CAP (what the table stores for one past it: a loop that diverged) is never allowed, and
+    nothing is interpolated towards it."""
     best = 0.0
     for i in range(n):
         gq = growth[o + i]
         gv = growth[o + n + i]
-        if gq > allowed_q or gv > allowed_v:
+        capped = not (gq < GROWTH_CAP and gv < GROWTH_CAP)
+        if capped or gq > allowed_q or gv > allowed_v:
             if i == 0:
                 return 0.0
             f = 1.0
             pq = growth[o + i - 1]
             pv = growth[o + n + i - 1]
-            if gq > allowed_q and pq > 0.0:
-                fq = math.log(allowed_q / pq) / math.log(gq / pq) if gq > pq else 0.0
+            if capped:
+                f = 0.0
+            if gq > allowed_q:
+                fq = 0.0
+                if 0.0 < pq < gq and allowed_q > 0.0:
+                    fq = math.log(allowed_q / pq) / math.log(gq / pq)
                 if fq < f:
                     f = fq
-            if gv > allowed_v and pv > 0.0:
-                fv_ = math.log(allowed_v / pv) / math.log(gv / pv) if gv > pv else 0.0
+            if gv > allowed_v:
+                fv_ = 0.0
+                if 0.0 < pv < gv and allowed_v > 0.0:
+                    fv_ = math.log(allowed_v / pv) / math.log(gv / pv)
                 if fv_ < f:
                     f = fv_
-            if f < 0.0:
+            if not f > 0.0:
                 f = 0.0
             return best + f * (grid[g0 + i] - best)
         best = grid[g0 + i]
@@ -283,7 +294,8 @@ def _allowed(buf, fv):
     """The growth the headroom allows, deflection and voltage (gains/ridethrough.py): the
     headroom over k times the spread, from the moving means and variances, or over the excursion
     the loop shows now where that is larger (a recovery under way: a gap that starts there grows
-    from it); at the let-go, P_LET_GO_GROWTH times that (the bound at its sigma)."""
+    from it); at the let-go, the same over the spreads at its sigma or the excursion beyond the k
+    spreads, whichever is larger."""
     k = fv[P_K_SIGMA]
     sq = 0.0
     for p in range(2):
@@ -316,8 +328,24 @@ def _allowed(buf, fv):
         av = 0.0
     fv[X_ALLOWED] = aq
     fv[X_ALLOWED + 1] = av
-    fv[X_ALLOWED_LET_GO] = aq * fv[P_LET_GO_GROWTH]
-    fv[X_ALLOWED_LET_GO + 1] = av * fv[P_LET_GO_GROWTH]
+    # at the let-go the spreads count at its sigma, and the excursion beyond the k spreads the
+    # stationary loop's noise peaks reach whole (a recovery under way is a deviation that is there,
+    # not a bound on one): continuous where the excursion is k spreads
+    g = fv[P_LET_GO_SIGMA]
+    bq = g * sq
+    if fv[X_EXCURSION] - (k - g) * sq > bq:
+        bq = fv[X_EXCURSION] - (k - g) * sq
+    bv = g * sv
+    if fv[X_EXCURSION + 1] - (k - g) * sv > bv:
+        bv = fv[X_EXCURSION + 1] - (k - g) * sv
+    aq = hq / bq if bq > 0.0 else math.inf
+    av = hv / bv if bv > 0.0 else math.inf
+    if not hq > 0.0:
+        aq = 0.0
+    if not hv > 0.0:
+        av = 0.0
+    fv[X_ALLOWED_LET_GO] = aq
+    fv[X_ALLOWED_LET_GO + 1] = av
     buf[I_SPREAD_Q] = sq
     buf[I_SPREAD_V] = sv
 

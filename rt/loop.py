@@ -464,8 +464,8 @@ class ControlLoop:
                         c.answer_sent(age)
                 if sample is not None and record[I_INPUT_PERIOD_US] > 0:
                     timing.input_period.record(record[I_INPUT_PERIOD_US] * 1e-6)
-                if sample is not None and record[I_HELD] > 0.0:
-                    timing.stalls.record(record[I_HELD], record[I_GAP_LIMIT])
+                if sample is not None and record[I_HELD] > 0.0 and record[I_FAULT] == 0:
+                    timing.stalls.record(record[I_HELD], record[I_GAP_LIMIT])     # ridden through
             t3 = clock()
             record[I_STEP_US] = (t2 - t1) * 1e6
             if tel is not None:

@@ -173,6 +173,10 @@ def test_a_fitted_parameter_the_data_leave_undetermined_keeps_the_prior_s_range(
     assert box["parameters"]["supports.rotational_stiffness"]["factor"] == [0.9, 1.1], "calibrated: the floor"
     how = calibration(fitted, ["supports.lateral_stiffness"])
     assert how["supports.lateral_stiffness"].startswith("kept at the prior's range"), how
+    # an undetermined damping keeps the prior's asymmetric x[0.5, 2], not a range symmetric about 1
+    loose = calibrated_box({"damping.ratios": [0.01, 0.003]}, {"damping.ratios": [0.0003, 0.00009]},
+                           ["damping.ratios[0]"])
+    assert loose["parameters"]["damping.ratios"]["factor"] == [0.5, 2.0], loose
     assert how["supports.rotational_stiffness"] == "calibrated from the fit", how
     box_from_dict(box, load_parameters())
 

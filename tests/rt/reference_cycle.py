@@ -54,8 +54,8 @@ spread_v = the largest sqrt(var V_i), headroom_v = the least of V_max - mean V_i
 The means and variances are exponential (coefficient 1 - exp(-T / 0.1 s)) over the controlled
 samples; a start sets the means where the signals are and the variances so that a growth of 10 is
 allowed. The let-go is the same at LET_GO_SIGMA for k (never below the live limit, capped
-alike; the growth allowed k / LET_GO_SIGMA times the limit's): a stall of more samples than it
-faults STALE_INPUT, and the late-answer limit is the
+alike) with the spreads at LET_GO_SIGMA instead of k, or the excursion beyond k spreads whole
+where that is larger: a stall of more samples than it faults STALE_INPUT, and the late-answer limit is the
 let-go capped by the configuration; the answer budget
 the table's per grid point (the lesser of a grid interval's ends), tightened by the configuration.
 
@@ -81,7 +81,7 @@ from beamctl.rt.controller import (
     START_GROWTH,
     ride_through_limits,
 )
-from beamctl.rt.engine import CATCH_UP_SAMPLES, RECORD_COLUMNS
+from beamctl.rt.engine import CATCH_UP_SAMPLES, GROWTH_CAP, RECORD_COLUMNS
 from beamctl.rt.safety import Fault, State, TransitionError
 
 # the record's layout is the telemetry's format (rt/engine.py defines it); the values in it are
@@ -325,36 +325,39 @@ class ReferenceController:
         interval = max(bisect.bisect_right(self.growth_loads, self.filtered) - 1, 0)
         curves = self.growth[interval, 0]          # the one bridge: hold
 
-        bound_q = max(self.sigma * spread_q, self.excursion_q)
-        bound_v = max(self.sigma * spread_v, self.excursion_v)
-        allowed_q = headroom_q / bound_q if bound_q > 0.0 else math.inf
-        allowed_v = headroom_v / bound_v if bound_v > 0.0 else math.inf
-        if not headroom_q > 0.0:
-            allowed_q = 0.0
-        if not headroom_v > 0.0:
-            allowed_v = 0.0
+        def allowed(bound_q: float, bound_v: float) -> tuple[float, float]:
+            aq = headroom_q / bound_q if bound_q > 0.0 else math.inf
+            av = headroom_v / bound_v if bound_v > 0.0 else math.inf
+            return (aq if headroom_q > 0.0 else 0.0), (av if headroom_v > 0.0 else 0.0)
 
         def longest(aq: float, av: float) -> float:
-            """The last grid gap allowed, then log-linearly on to where a growth reaches it."""
+            """The last grid gap allowed, then log-linearly on to where a growth reaches it; a
+            growth at the cap is never allowed, nor interpolated towards."""
             limit = 0.0
             before = None
             for n, g_q, g_v in zip(self.gap_grid, curves[0], curves[1], strict=True):
-                if g_q > aq or g_v > av:
+                capped = not (g_q < GROWTH_CAP and g_v < GROWTH_CAP)
+                if capped or g_q > aq or g_v > av:
                     if before is None:
                         return 0.0
-                    fractions = [1.0]
+                    fractions = [0.0 if capped else 1.0]
                     for g, p, a in ((g_q, before[0], aq), (g_v, before[1], av)):
-                        if g > a and p > 0.0:
-                            fractions.append(math.log(a / p) / math.log(g / p) if g > p else 0.0)
+                        if g > a:
+                            ok = 0.0 < p < g and a > 0.0
+                            fractions.append(math.log(a / p) / math.log(g / p) if ok else 0.0)
                     return limit + max(min(fractions), 0.0) * (n - limit)
                 limit = n
                 before = (g_q, g_v)
             return limit
 
-        limit = longest(allowed_q, allowed_v)
-        growth = max(self.sigma / LET_GO_SIGMA, 1.0)
+        k = self.sigma
+        limit = longest(*allowed(max(k * spread_q, self.excursion_q), max(k * spread_v, self.excursion_v)))
+        # the let-go: the spreads at its sigma, or the excursion beyond k spreads, whole
+        g = min(LET_GO_SIGMA, k)
+        go = longest(*allowed(max(g * spread_q, self.excursion_q - (k - g) * spread_q),
+                              max(g * spread_v, self.excursion_v - (k - g) * spread_v)))
         self.live_limit = min(limit, self.gap_cap)
-        self.let_go = min(max(longest(growth * allowed_q, growth * allowed_v), limit), self.gap_cap)
+        self.let_go = min(max(go, limit), self.gap_cap)
         r[COL["gap_limit_samples"]] = self.live_limit
 
     # == lifecycle (every command carried out records the state and the fault) ====================

@@ -199,6 +199,9 @@ def compare(c: Controller, r: ReferenceController, where: str) -> float:
         k = int(np.argmax(dev_x))
         problems.append(f"x_c[{k}] (of {int((dev_x > RTOL).sum())} differing): engine "
                         f"{c.compensator_state[k]!r}, reference {r.x[k]!r}")
+    # the let-go (no record column): within the same tolerance, in samples
+    if abs(c.let_go - r.let_go) > RTOL * max(abs(r.let_go), 1.0):
+        problems.append(f"let-go: engine {c.let_go!r}, reference {r.let_go!r}")
     worst = max(dev.max(), dev_x.max(initial=0.0))
     s, iv, fv = c.safety, c.iv, c.fv
     exact = {
