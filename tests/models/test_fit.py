@@ -43,15 +43,17 @@ def rig_klp():
     return _measured(RIG_KLP)
 
 
-def test_without_the_mesh_s_account_kr_misses_its_own_interval(rig_klp):
-    """The fact the mesh account exists for: noise-free data, the model exact but for its mesh,
-    and kr comes back percent off with an interval that does not hold it."""
+def test_without_the_mesh_s_account_kr_is_percent_off_and_said_to_be_undetermined(rig_klp):
+    """The fact the mesh account and the supports' tie exist for: noise-free data, the model exact
+    but for its mesh, and kr comes back percent off (its statistical interval alone, 0.3 %, missed
+    it); tied to kl and kp it is said to be undetermined, with an interval that holds it."""
     rig, data = rig_klp
     result = fit(load_parameters(), [data], FitSettings(parameters=SUPPORTS, mesh_correction=False))
     error, z, _ = _kr(result, rig)
-    assert abs(error) > 0.01 and abs(z) > 1.96, (
-        f"kr {100 * error:.2f} % off, z = {z:.1f}: the mesh bias this test demonstrates is gone, and "
-        "the fit's mesh account may no longer be needed")
+    assert abs(error) > 0.01, (
+        f"kr {100 * error:.2f} % off: the mesh bias this test demonstrates is gone, and the fit's "
+        "mesh account may no longer be needed")
+    assert KR in result.undetermined and abs(z) < 1.96, (result.undetermined, z)
 
 
 def test_with_kl_and_kp_free_the_interval_holds_kr_and_the_fit_says_it_is_loose(rig_klp):
@@ -80,7 +82,9 @@ def test_with_kl_and_kp_as_the_model_s_the_fit_recovers_kr_within_half_a_percent
     assert abs(error) < 0.005, f"kr {100 * error:.2f} % off (allowed 0.5 %)"
     assert abs(result.values["beam.youngs_modulus"] / rig.beam.youngs_modulus - 1) < 5e-4
     assert abs(z) < 1.96, f"kr's 95 % interval misses the rig: z = {z:.2f}"
-    assert result.warnings == [], result.warnings
+    # E and kr tied from one load: kr's interval counts the mesh's uncertainty (a closeness
+    # warning), but nothing says the model misses the data
+    assert not [w for w in result.warnings if "residual" in w or "undetermined" in w], result.warnings
     assert result.misfit < 0.05, "noise-free data are explained far below the 1.8 % noise they claim"
 
 

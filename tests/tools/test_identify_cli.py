@@ -54,8 +54,8 @@ def test_fit_json_has_the_dotted_model_keys_and_the_file_feeds_model_and_gains(i
     out = tmp_path / "fitted.yaml"
     assert main(["model", "fit", str(identified / "id-2000.npz"), "--out", str(out), "--json"]) == 0
     result = json.loads(capsys.readouterr().out)
-    keys = {"beam.youngs_modulus", "supports.rotational_stiffness", "damping.ratios",
-            "actuators.force_constant_n_per_v"}
+    keys = {"beam.youngs_modulus", "supports.rotational_stiffness", "supports.lateral_stiffness",
+            "supports.actuator_stiffness", "damping.ratios", "actuators.force_constant_n_per_v"}
     assert set(result["parameters"]) == keys and set(result["std_errors"]) == keys
     assert result["cost"] < result["start_cost"]
     # the identification kept the static strains: this rig is straight (no bow, no eccentric load),
