@@ -396,24 +396,30 @@ def test_the_engine_s_limit_is_the_longest_gap_the_headroom_allows(shipped):
     headroom for both outputs, against a direct scan of the table's curves, and on from it to
     where the growth interpolated linearly in its logarithm reaches what is allowed (never as far
     as the next grid gap, whose growth is not allowed)."""
-    from beamctl.rt.engine import gap_allowed
+    from beamctl.rt.engine import GROWTH_CAP, gap_allowed
 
     rt = shipped.ride_through
     grid = np.asarray(rt.gap_grid_samples, dtype=float)
     for e in (0, len(rt.loads_n) // 2, len(rt.loads_n) - 1):
         curves = np.ascontiguousarray(rt.growth[:, :, e, :])
+        assert np.all(np.diff(curves, axis=-1) >= 0.0), "the stored growth does not fall with the gap"
         for aq, av in ((1e9, 1e9), (300.0, 80.0), (30.0, 5.0), (1.0, 1.0), (0.5, 1e9)):
-            within = [n for n, gq, gv in zip(grid, curves[0, 0], curves[0, 1], strict=True)
-                      if gq <= aq and gv <= av]
-            # the grid's curves do not fall: what is allowed is a prefix of the grid
+            # a growth at the stored cap (a loop that diverged) is never allowed
+            within = []
+            for n, gq, gv in zip(grid, curves[0, 0], curves[0, 1], strict=True):
+                if not (gq <= aq and gv <= av and max(gq, gv) < GROWTH_CAP):
+                    break
+                within.append(n)
             direct = int(max(within)) if within else 0
-            assert len(within) == (list(grid).index(direct) + 1 if within else 0)
             got = gap_allowed(curves.ravel(), 0, grid, 0, len(grid), aq, av)
             case = (rt.loads_n[e], aq, av, got, direct)
             if not within or direct == grid[-1]:
                 assert got == direct, case
                 continue
             i = len(within)
+            if max(curves[0, 0, i], curves[0, 1, i]) >= GROWTH_CAP:
+                assert got == direct, f"interpolated towards a capped growth: {case}"
+                continue
             assert direct <= got < grid[i], case
             # at ``got`` the log-interpolated growth of the output that binds is what is allowed
             f = (got - grid[i - 1]) / (grid[i] - grid[i - 1])
