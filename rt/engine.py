@@ -354,8 +354,8 @@ def _live_limit(buf, iv, fv, mats):
     """The live ride-through limit (samples) of the grid interval in use, from the growth the
     headroom allows now at k sigma, and the let-go, from the growth it allows at the let-go's
     sigma (never below the limit); the limit capped by the DAQ's silence and the configuration,
-the let-go by the configuration. A
-    stall within the limit is survived with k sigma to spare; one past the let-go faults; one
+    the let-go by the configuration. A stall within the limit is survived with k sigma to spare;
+    one past the let-go faults; one
     between is ridden through (the beam is more likely held than lost: letting go of it sooner
     could only lose it, and the supervisor watches what it does once the samples come back)."""
     _allowed(buf, fv)
