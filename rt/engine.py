@@ -290,6 +290,20 @@ def gap_allowed(growth, o, grid, g0, n, allowed_q, allowed_v):
     return best
 
 
+def _allowed_over(fv, slot, a, b, sq, sv, hq, hv):
+    """Into ``fv[slot:slot + 2]``: the growth the headrooms ``hq`` (strain) and ``hv`` (V) allow
+    over the bound max(a spreads, the excursion less b spreads), deflection and voltage; 0 where
+    there is no headroom."""
+    bq = a * sq
+    if fv[X_EXCURSION] - b * sq > bq:
+        bq = fv[X_EXCURSION] - b * sq
+    bv = a * sv
+    if fv[X_EXCURSION + 1] - b * sv > bv:
+        bv = fv[X_EXCURSION + 1] - b * sv
+    fv[slot] = (hq / bq if bq > 0.0 else math.inf) if hq > 0.0 else 0.0
+    fv[slot + 1] = (hv / bv if bv > 0.0 else math.inf) if hv > 0.0 else 0.0
+
+
 def _allowed(buf, fv):
     """The growth the headroom allows, deflection and voltage (gains/ridethrough.py): the
     headroom over k times the spread, from the moving means and variances, or over the excursion
@@ -318,34 +332,12 @@ def _allowed(buf, fv):
         if h < hv:
             hv = h
     hq = fv[P_STRAIN_LIMIT] - ym
-    bq = k * sq if k * sq > fv[X_EXCURSION] else fv[X_EXCURSION]
-    bv = k * sv if k * sv > fv[X_EXCURSION + 1] else fv[X_EXCURSION + 1]
-    aq = hq / bq if bq > 0.0 else math.inf
-    av = hv / bv if bv > 0.0 else math.inf
-    if not hq > 0.0:
-        aq = 0.0
-    if not hv > 0.0:
-        av = 0.0
-    fv[X_ALLOWED] = aq
-    fv[X_ALLOWED + 1] = av
+    _allowed_over(fv, X_ALLOWED, k, 0.0, sq, sv, hq, hv)
     # at the let-go the spreads count at its sigma, and the excursion beyond the k spreads the
     # stationary loop's noise peaks reach whole (a recovery under way is a deviation that is there,
     # not a bound on one): continuous where the excursion is k spreads
     g = fv[P_LET_GO_SIGMA]
-    bq = g * sq
-    if fv[X_EXCURSION] - (k - g) * sq > bq:
-        bq = fv[X_EXCURSION] - (k - g) * sq
-    bv = g * sv
-    if fv[X_EXCURSION + 1] - (k - g) * sv > bv:
-        bv = fv[X_EXCURSION + 1] - (k - g) * sv
-    aq = hq / bq if bq > 0.0 else math.inf
-    av = hv / bv if bv > 0.0 else math.inf
-    if not hq > 0.0:
-        aq = 0.0
-    if not hv > 0.0:
-        av = 0.0
-    fv[X_ALLOWED_LET_GO] = aq
-    fv[X_ALLOWED_LET_GO + 1] = av
+    _allowed_over(fv, X_ALLOWED_LET_GO, g, k - g, sq, sv, hq, hv)
     buf[I_SPREAD_Q] = sq
     buf[I_SPREAD_V] = sv
 
@@ -355,9 +347,9 @@ def _live_limit(buf, iv, fv, mats):
     headroom allows now at k sigma, and the let-go, from the growth it allows at the let-go's
     sigma (never below the limit); the limit capped by the DAQ's silence and the configuration,
     the let-go by the configuration. A stall within the limit is survived with k sigma to spare;
-    one past the let-go faults; one
-    between is ridden through (the beam is more likely held than lost: letting go of it sooner
-    could only lose it, and the supervisor watches what it does once the samples come back)."""
+    one past the let-go faults; one between is ridden through (the beam is more likely held than
+    lost: letting go of it sooner could only lose it, and the supervisor watches what it does once
+    the samples come back)."""
     _allowed(buf, fv)
     # the growth's interval: between the analysed loads around the filtered load
     i = iv[V_GINDEX]
@@ -1088,6 +1080,7 @@ _ramp_begin = _jit(_ramp_begin)
 _ramp_advance = _jit(_ramp_advance)
 _trip = _jit(_trip)
 gap_allowed = _jit(gap_allowed)
+_allowed_over = _jit(_allowed_over)
 _allowed = _jit(_allowed)
 _live_limit = _jit(_live_limit)
 _stats_start = _jit(_stats_start)
